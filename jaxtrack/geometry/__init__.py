@@ -1,0 +1,33 @@
+"""Geometry: SO(3)/SE(3), kinematic chains, cameras and Plücker lines (pure JAX, batchable)."""
+
+from ._camera import Camera as Camera
+from ._camera import backproject_pixels as backproject_pixels
+from ._camera import make_camera as make_camera
+from ._camera import pixel_rays_world as pixel_rays_world
+from ._camera import pixels_to_normalized as pixels_to_normalized
+from ._camera import project_points as project_points
+from ._camera import select_camera as select_camera
+from ._camera import stack_cameras as stack_cameras
+from ._camera import undistort_points as undistort_points
+from ._chain import KinematicModel as KinematicModel
+from ._chain import chain_model as chain_model
+from ._chain import part_transforms as part_transforms
+from ._chain import revolute_twist as revolute_twist
+from ._chain import rigid_model as rigid_model
+from ._lie import make_transform as make_transform
+from ._lie import rotation_to_quaternion as rotation_to_quaternion
+from ._lie import se3_adjoint as se3_adjoint
+from ._lie import se3_compose as se3_compose
+from ._lie import se3_exp as se3_exp
+from ._lie import se3_hat as se3_hat
+from ._lie import se3_inverse as se3_inverse
+from ._lie import se3_log as se3_log
+from ._lie import se3_vee as se3_vee
+from ._lie import so3_exp as so3_exp
+from ._lie import so3_hat as so3_hat
+from ._lie import so3_log as so3_log
+from ._lie import so3_vee as so3_vee
+from ._lie import transform_points as transform_points
+from ._plucker import plucker_from_ray as plucker_from_ray
+from ._plucker import point_line_distance as point_line_distance
+from ._plucker import point_line_residual as point_line_residual

@@ -1,0 +1,25 @@
+"""Plücker lines (eq. 3) and the point-line residual of the pose solver (eq. 4).
+
+A line through point p with unit direction n is L = (n, m), m = p × n. For any point X,
+X × n − m is a vector orthogonal to n whose norm is the distance of X from L (eq. 4).
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+
+def plucker_from_ray(origin, direction):
+    """(n, m) of rays. origin, direction (..., 3); direction is normalised here."""
+    n = direction / jnp.linalg.norm(direction, axis=-1, keepdims=True)
+    return n, jnp.cross(origin, n)
+
+
+def point_line_residual(points, n, m):
+    """r = X × n − m (eq. 4), (..., 3); |r| is the point-line distance."""
+    return jnp.cross(points, n) - m
+
+
+def point_line_distance(points, n, m):
+    """Euclidean distance of points (..., 3) from lines (n, m)."""
+    return jnp.linalg.norm(point_line_residual(points, n, m), axis=-1)

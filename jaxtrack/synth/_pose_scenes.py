@@ -1,0 +1,166 @@
+"""Random 2D-3D scenes with exact ground truth for the pose solver (demo, tests, benchmarks).
+
+Host-side numpy with an explicit seed: the same seed gives the same scene.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from ..geometry import Camera, KinematicModel, chain_model, make_camera, rigid_model, stack_cameras
+
+
+@dataclasses.dataclass(frozen=True)
+class PoseScene:
+    """A solved-for-truth scene: observed pixels of model points under a known pose.
+
+    Attributes:
+        cameras: stacked rig (C on the leading axis).
+        model: the kinematic tree.
+        pixel: (n, 2) observed pixels (with noise, distortion applied if the camera has any).
+        p_model: (n, 3) model points (mm), part: (n,), camera_index: (n,).
+        T_world_root: (4, 4) true root pose; theta: (J,) true joint angles.
+    """
+
+    cameras: Camera
+    model: KinematicModel
+    pixel: np.ndarray
+    p_model: np.ndarray
+    part: np.ndarray
+    camera_index: np.ndarray
+    T_world_root: np.ndarray
+    theta: np.ndarray
+
+
+def random_rotation(rng: np.random.Generator, max_angle: float | None = None) -> np.ndarray:
+    """Uniform random rotation, or one of angle ≤ max_angle (rad) about a uniform axis."""
+    if max_angle is None:
+        q = rng.normal(size=4)
+        q /= np.linalg.norm(q)
+        w, x, y, z = q
+        return np.array(
+            [
+                [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+            ]
+        )
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    angle = rng.uniform(0, max_angle)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
+
+
+def look_at(eye, target=(0.0, 0.0, 0.0), up=(0.0, -1.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
+    """R_cam_world, t_cam_world of a camera at `eye` looking at `target` (OpenCV axes: z forward, y down)."""
+    eye, target, up = (np.asarray(a, np.float64) for a in (eye, target, up))
+    z = target - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(up, z)
+    if np.linalg.norm(x) < 1e-9:
+        x = np.cross(np.array([1.0, 0.0, 0.0]), z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])
+    return R, -R @ eye
+
+
+def camera_ring(num_cameras: int, distance: float = 1000.0, width: int = 640, height: int = 480, focal: float = 800.0, dtype=np.float32) -> Camera:
+    """C cameras on a horizontal circle around the origin, all looking at it (world frame = first camera's view axis)."""
+    K = np.array([[focal, 0, (width - 1) / 2], [0, focal, (height - 1) / 2], [0, 0, 1]])
+    cams = []
+    for c in range(num_cameras):
+        angle = 2 * np.pi * c / max(num_cameras, 1)
+        eye = distance * np.array([np.sin(angle), 0.0, -np.cos(angle)])
+        R, t = look_at(eye)
+        cams.append(make_camera(K, width, height, R, t, dtype=dtype))
+    return stack_cameras(cams)
+
+
+def demo_chain(num_joints: int = 3, branches: int = 1, link_length: float = 120.0, dtype=np.float32) -> KinematicModel:
+    """An arm of `num_joints` links along +x (branches=1) or a torso with two arms (branches=2)."""
+    if branches == 1:
+        parents = [-1] + list(range(num_joints))
+        axes = [(0.0, 0.0, 1.0) if j % 2 == 0 else (0.0, 1.0, 0.0) for j in range(num_joints)]
+        points = [(link_length * (j + 0.5), 0.0, 0.0) for j in range(num_joints)]
+        return chain_model(parents, axes, points, dtype=dtype)
+    if branches != 2:
+        raise ValueError("demo_chain supports 1 or 2 branches")
+    per_arm = max(num_joints // 2, 1)
+    parents, axes, points = [-1], [], []
+    for side in (1.0, -1.0):
+        prev = 0
+        for j in range(per_arm):
+            parents.append(prev)
+            prev = len(parents) - 1
+            axes.append((0.0, 0.0, 1.0) if j % 2 == 0 else (0.0, 1.0, 0.0))
+            points.append((side * link_length * (j + 0.5), 0.0, 0.0))
+    return chain_model(parents, axes, points, dtype=dtype)
+
+
+def _part_points(rng, model: KinematicModel, num_points: int, extent: float, link_length: float):
+    """Points spread over the parts: the root fills a box, link p is a bar along its joint's x."""
+    num_parts = model.num_parts
+    part = rng.integers(0, num_parts, size=num_points) if num_parts > 1 else np.zeros(num_points, int)
+    part[:num_parts] = np.arange(num_parts)[: min(num_parts, num_points)]
+    pts = rng.uniform(-extent, extent, size=(num_points, 3))
+    if num_parts > 1:
+        twists = np.asarray(model.joint_twists, np.float64)
+        for p in range(1, num_parts):
+            sel = part == p
+            omega, v = twists[p - 1, 3:], twists[p - 1, :3]
+            q = np.cross(omega, v)  # the point of the axis closest to the origin
+            direction = np.sign(q[0]) if abs(q[0]) > 0 else 1.0
+            offs = rng.uniform(0, link_length, size=sel.sum())
+            pts[sel] = q + np.stack([direction * offs, rng.uniform(-20, 20, sel.sum()), rng.uniform(-20, 20, sel.sum())], axis=1)
+    return pts, part
+
+
+def random_pose_scene(
+    seed: int,
+    num_points: int = 200,
+    noise_px: float = 0.0,
+    num_cameras: int = 1,
+    model: KinematicModel | None = None,
+    extent: float = 100.0,
+    max_joint_angle: float = 0.6,
+    dtype=np.float64,
+) -> PoseScene:
+    """A random pose of `model` (rigid by default) seen by a ring of cameras, with pixel noise.
+
+    Points that project outside the image or behind a camera are still kept (they constrain the
+    pose as lines do); each point is observed by one camera, chosen at random.
+    """
+    rng = np.random.default_rng(seed)
+    model = rigid_model(dtype) if model is None else model
+    cameras = camera_ring(num_cameras, dtype=dtype)
+    R = random_rotation(rng)
+    t = rng.uniform([-50, -50, -50], [50, 50, 50])
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    theta = rng.uniform(-max_joint_angle, max_joint_angle, size=model.num_joints)
+    p_model, part = _part_points(rng, model, num_points, extent, link_length=120.0)
+    from ..geometry import part_transforms, project_points, select_camera  # noqa: PLC0415 (host only)
+    import jax.numpy as jnp  # noqa: PLC0415
+
+    T_parts = np.asarray(part_transforms(model, jnp.asarray(T, dtype), jnp.asarray(theta, dtype)), np.float64)
+    p_world = np.einsum("nij,nj->ni", T_parts[part, :3, :3], p_model) + T_parts[part, :3, 3]
+    cam_idx = rng.integers(0, num_cameras, size=num_points)
+    pixel, _ = project_points(select_camera(cameras, jnp.asarray(cam_idx)), jnp.asarray(p_world, dtype))
+    pixel = np.asarray(pixel, np.float64) + rng.normal(scale=noise_px, size=(num_points, 2))
+    return PoseScene(cameras, model, pixel, p_model, part, cam_idx, T, theta)
+
+
+def perturb_pose(rng: np.random.Generator, T: np.ndarray, max_angle: float, max_translation: float) -> np.ndarray:
+    """T with a random rotation of ≤ max_angle (rad) and translation of ≤ max_translation (mm) applied."""
+    D = np.eye(4)
+    D[:3, :3] = random_rotation(rng, max_angle)
+    direction = rng.normal(size=3)
+    D[:3, 3] = direction / np.linalg.norm(direction) * rng.uniform(0, max_translation)
+    out = D @ T
+    out[:3, 3] = T[:3, 3] + D[:3, 3]
+    out[:3, :3] = D[:3, :3] @ T[:3, :3]
+    return out
