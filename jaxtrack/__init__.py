@@ -5,6 +5,8 @@ Tracking of Rigid and Articulated Objects" (TPAMI 2010).
 """
 
 from . import geometry as geometry
+from . import io as io
+from . import render as render
 from . import solve as solve
 from . import synth as synth
 from .geometry import Camera as Camera

@@ -50,6 +50,7 @@ class Correspondences(eqx.Module):
         return eqx.tree_at(lambda c: c.weight, self, jnp.asarray(weight, self.weight.dtype))
 
 
+@eqx.filter_jit
 def correspondences_from_pixels(cameras: Camera, pixel, camera_index, p_model, part, weight, undistort=True):
     """Jittable builder: pixels (+ camera per row) and model points to a correspondence set.
 

@@ -36,7 +36,9 @@ def line_planes(n, m):
         (jnp.abs(n[..., 0]) < 0.9)[..., None], jnp.array([1.0, 0.0, 0.0], n.dtype), jnp.array([0.0, 1.0, 0.0], n.dtype)
     )
     b1 = jnp.cross(n, helper)
-    b1 = b1 / jnp.linalg.norm(b1, axis=-1, keepdims=True)
+    norm = jnp.linalg.norm(b1, axis=-1, keepdims=True)
+    # Zeroed padding rows have n = 0; they get zero planes instead of 0/0.
+    b1 = b1 / jnp.where(norm > 0, norm, 1.0)
     b2 = jnp.cross(n, b1)
     p0 = jnp.cross(n, m)
     normals = jnp.stack([b1, b2], axis=-2)

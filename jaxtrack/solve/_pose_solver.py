@@ -169,6 +169,7 @@ def input_status(model: KinematicModel, corr: Correspondences, T_init, theta_ini
     return jnp.where(invalid, PoseStatus.INVALID_INPUT, jnp.where(too_few, PoseStatus.TOO_FEW, PoseStatus.OK))
 
 
+@eqx.filter_jit
 def solve_pose(
     model: KinematicModel,
     corr: Correspondences,
@@ -178,7 +179,8 @@ def solve_pose(
 ) -> PoseSolution:
     """Solve χ = (ξ, Θ) minimising Σ w_i |T(χ) X_i × n_i − m_i|² (eq. 4-5). Jittable and vmappable.
 
-    Never raises and never returns a NaN pose: on bad input, too few constraints or a failed solve
+    Compiled on first use for each input structure (an `eqx.filter_jit`; inside a caller's jit or
+    vmap it is inlined). Never raises and never returns a NaN pose: on bad input, too few constraints or a failed solve
     the initial pose comes back with the matching `PoseStatus`. Use `estimate_pose` at an API edge
     to get errors instead.
 
@@ -223,10 +225,12 @@ def solve_pose(
             jnp.where(out_of_steps, PoseStatus.MAX_STEPS, PoseStatus.SOLVER_FAILED),
         )
     else:
-        y, (converged, num_steps, _) = solve_implicit(
+        y, (converged, num_steps, nonfinite) = solve_implicit(
             _weighted_residual, lambda guess: _gauss_newton_iterate(guess, args, config), y0, args
         )
-        solver_status = jnp.where(converged, PoseStatus.OK, PoseStatus.MAX_STEPS)
+        solver_status = jnp.where(
+            nonfinite > 0, PoseStatus.NONFINITE, jnp.where(converged > 0, PoseStatus.OK, PoseStatus.MAX_STEPS)
+        )
     finite = jnp.all(jnp.isfinite(y))
     solver_status = jnp.where(finite, solver_status, PoseStatus.NONFINITE)
     status = jnp.where(pre_status != PoseStatus.OK, pre_status, solver_status).astype(jnp.int32)
@@ -243,9 +247,6 @@ def solve_pose(
         cost=jnp.sum(residual**2),
         num_effective=corr.num_effective().astype(jnp.int32),
     )
-
-
-_solve_pose_jit = eqx.filter_jit(solve_pose)
 
 
 def estimate_pose(
@@ -283,7 +284,7 @@ def estimate_pose(
             f"too few effective correspondences: {int(corr.num_effective())} with positive weight give "
             f"{2 * int(corr.num_effective())} constraints for {model.num_dof} degrees of freedom"
         )
-    sol = _solve_pose_jit(model, corr, T_init, theta_init, config)
+    sol = solve_pose(model, corr, T_init, theta_init, config)
     if int(sol.status) >= PoseStatus.SOLVER_FAILED:
         raise RuntimeError(f"pose solve failed with status {PoseStatus(int(sol.status)).name}")
     return sol

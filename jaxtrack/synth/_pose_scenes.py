@@ -7,9 +7,22 @@ from __future__ import annotations
 
 import dataclasses
 
+import equinox as eqx
+import jax.numpy as jnp
 import numpy as np
 
-from ..geometry import Camera, KinematicModel, chain_model, make_camera, rigid_model, stack_cameras
+from ..geometry import (
+    Camera,
+    KinematicModel,
+    chain_model,
+    make_camera,
+    part_transforms,
+    project_points,
+    rigid_model,
+    select_camera,
+    stack_cameras,
+    transform_points,
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -143,15 +156,41 @@ def random_pose_scene(
     T[:3, :3], T[:3, 3] = R, t
     theta = rng.uniform(-max_joint_angle, max_joint_angle, size=model.num_joints)
     p_model, part = _part_points(rng, model, num_points, extent, link_length=120.0)
-    from ..geometry import part_transforms, project_points, select_camera  # noqa: PLC0415 (host only)
-    import jax.numpy as jnp  # noqa: PLC0415
-
-    T_parts = np.asarray(part_transforms(model, jnp.asarray(T, dtype), jnp.asarray(theta, dtype)), np.float64)
-    p_world = np.einsum("nij,nj->ni", T_parts[part, :3, :3], p_model) + T_parts[part, :3, 3]
     cam_idx = rng.integers(0, num_cameras, size=num_points)
-    pixel, _ = project_points(select_camera(cameras, jnp.asarray(cam_idx)), jnp.asarray(p_world, dtype))
-    pixel = np.asarray(pixel, np.float64) + rng.normal(scale=noise_px, size=(num_points, 2))
+    pixel = _observe(cameras, model, T, theta, p_model, part, cam_idx, noise_px, rng)
     return PoseScene(cameras, model, pixel, p_model, part, cam_idx, T, theta)
+
+
+@eqx.filter_jit
+def _project_model(cameras, model, T, theta, p_model, part, cam_idx):
+    T_parts = part_transforms(model, T, theta)
+    p_world = transform_points(T_parts[part], p_model)
+    pixel, _ = project_points(select_camera(cameras, cam_idx), p_world)
+    return pixel
+
+
+def _observe(cameras, model, T, theta, p_model, part, cam_idx, noise_px, rng):
+    """Pixels of model points at pose (T, Θ) in their cameras, plus Gaussian noise."""
+    dtype = cameras.K.dtype
+    pixel = _project_model(
+        cameras,
+        model,
+        jnp.asarray(T, dtype),
+        jnp.asarray(theta, dtype),
+        jnp.asarray(p_model, dtype),
+        jnp.asarray(part, jnp.int32),
+        jnp.asarray(cam_idx, jnp.int32),
+    )
+    return np.asarray(pixel, np.float64) + rng.normal(scale=noise_px, size=(len(p_model), 2))
+
+
+def project_model_points(scene: PoseScene, T_world_root, theta, noise_px: float = 0.0, seed: int = 0) -> PoseScene:
+    """The same model points and cameras as `scene`, observed at a new pose (T_world_root, Θ)."""
+    rng = np.random.default_rng(seed)
+    T = np.asarray(T_world_root, np.float64)
+    theta = np.asarray(theta, np.float64)
+    pixel = _observe(scene.cameras, scene.model, T, theta, scene.p_model, scene.part, scene.camera_index, noise_px, rng)
+    return dataclasses.replace(scene, pixel=pixel, T_world_root=T, theta=theta)
 
 
 def perturb_pose(rng: np.random.Generator, T: np.ndarray, max_angle: float, max_translation: float) -> np.ndarray:

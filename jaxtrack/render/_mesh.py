@@ -1,0 +1,88 @@
+"""Triangle meshes as static-shape pytrees, rigid or split into the parts of a kinematic tree."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+class Mesh(eqx.Module):
+    """A triangle mesh in the model frame (mm, zero configuration).
+
+    Attributes:
+        vertices: (V, 3) model-frame vertex positions.
+        faces: (F, 3) int32 vertex indices, counter-clockwise seen from outside.
+        vertex_part: (V,) int32 part of each vertex (all 0 for a rigid object).
+        face_part: (F,) int32 part of each face (the part of its first vertex).
+    """
+
+    vertices: jax.Array
+    faces: jax.Array
+    vertex_part: jax.Array
+    face_part: jax.Array
+
+    @property
+    def num_faces(self) -> int:
+        return self.faces.shape[0]
+
+    @property
+    def num_vertices(self) -> int:
+        return self.vertices.shape[0]
+
+
+def make_mesh(vertices, faces, vertex_part=None, dtype=jnp.float32, name: str = "mesh") -> Mesh:
+    """Validated `Mesh` from host arrays.
+
+    Raises:
+        ValueError: naming the field (shape, non-finite vertices, indices out of range, no faces).
+    """
+    vertices = np.asarray(vertices, np.float64)
+    faces = np.asarray(faces)
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or len(vertices) == 0:
+        raise ValueError(f"{name}: vertices must have shape (V, 3) with V > 0, got {vertices.shape}")
+    if not np.all(np.isfinite(vertices)):
+        raise ValueError(f"{name}: vertices contain non-finite values")
+    if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
+        raise ValueError(f"{name}: faces must have shape (F, 3) with F > 0 (a triangle mesh), got {faces.shape}")
+    if not np.issubdtype(faces.dtype, np.integer) or faces.min() < 0 or faces.max() >= len(vertices):
+        raise ValueError(f"{name}: face indices must be integers in [0, {len(vertices)})")
+    vertex_part = np.zeros(len(vertices), np.int32) if vertex_part is None else np.asarray(vertex_part, np.int32)
+    if vertex_part.shape != (len(vertices),):
+        raise ValueError(f"{name}: vertex_part must have shape ({len(vertices)},), got {vertex_part.shape}")
+    return Mesh(
+        vertices=jnp.asarray(vertices, dtype),
+        faces=jnp.asarray(faces, jnp.int32),
+        vertex_part=jnp.asarray(vertex_part),
+        face_part=jnp.asarray(vertex_part[faces[:, 0]]),
+    )
+
+
+def box_mesh(size=(100.0, 60.0, 40.0), dtype=jnp.float32) -> Mesh:
+    """An axis-aligned box centred at the origin (12 triangles, outward CCW)."""
+    sx, sy, sz = (s / 2 for s in size)
+    v = np.array([[x, y, z] for x in (-sx, sx) for y in (-sy, sy) for z in (-sz, sz)])
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    faces = [f for a, b, c, d in quads for f in ((a, b, c), (a, c, d))]
+    return make_mesh(v, faces, dtype=dtype, name="box")
+
+
+def torus_mesh(major=80.0, minor=30.0, segments=48, rings=24, dtype=jnp.float32) -> Mesh:
+    """A torus around the z axis: self-occluding, for renderer tests."""
+    u = np.linspace(0, 2 * np.pi, segments, endpoint=False)
+    w = np.linspace(0, 2 * np.pi, rings, endpoint=False)
+    uu, ww = np.meshgrid(u, w, indexing="ij")
+    x = (major + minor * np.cos(ww)) * np.cos(uu)
+    y = (major + minor * np.cos(ww)) * np.sin(uu)
+    z = minor * np.sin(ww)
+    verts = np.stack([x, y, z], -1).reshape(-1, 3)
+    faces = []
+    for i in range(segments):
+        for j in range(rings):
+            a = i * rings + j
+            b = ((i + 1) % segments) * rings + j
+            c = ((i + 1) % segments) * rings + (j + 1) % rings
+            d = i * rings + (j + 1) % rings
+            faces += [(a, b, c), (a, c, d)]
+    return make_mesh(verts, faces, dtype=dtype, name="torus")

@@ -1,0 +1,289 @@
+"""A jittable triangle rasteriser with static shapes: depth, face id, surface points, visibility.
+
+Each triangle is tested over a fixed square pixel patch anchored at its (image-clipped) bounding box.
+Triangles are sorted into a few patch-size classes (4, 8, ..., 512 px); each class has a fixed
+capacity chosen on the host (`plan_raster`). Depth is written with a scatter-min over all candidate
+(triangle, pixel) pairs, then the winning face id with a scatter-max among the pixels whose depth
+equals the minimum. A class overflowing its capacity is reported (`RenderOutput.overflow`), never
+silently cropped; `Renderer` re-plans on the host when that happens.
+
+Pixel centres are at integer coordinates (OpenCV). Depth is interpolated perspective-correctly
+(1/z is affine in screen space). Triangles with a vertex in front of the near plane are dropped
+(`RenderOutput.near_clipped` counts them): the tracker never looks at an object that close.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..geometry import Camera, KinematicModel, part_transforms, pixels_to_normalized, rigid_model
+from ._mesh import Mesh
+
+# Steps of √2: a face's square patch is then at most 2x the area of its bounding square.
+PATCH_SIZES = (4, 6, 8, 11, 16, 23, 32, 45, 64, 91, 128, 181, 256, 362, 512, 724)
+
+
+class RasterPlan(eqx.Module):
+    """Static capacities per patch-size class (host-chosen; changing them recompiles)."""
+
+    patch_sizes: tuple = eqx.field(static=True)
+    capacities: tuple = eqx.field(static=True)
+    near: float = eqx.field(static=True, default=1.0)
+    cull_backfaces: bool = eqx.field(static=True, default=False)
+
+
+class RenderOutput(eqx.Module):
+    """Per-pixel buffers (H, W) of one camera.
+
+    Attributes:
+        depth: (H, W) camera-frame z of the visible surface, +inf on background.
+        face_id: (H, W) int32 visible face, −1 on background (silhouette = face_id ≥ 0).
+        bary: (H, W, 3) perspective-correct barycentric coordinates in the visible face.
+        p_model: (H, W, 3) model-frame (zero-configuration) surface point behind each pixel.
+        part_id: (H, W) int32 part of the visible face, −1 on background.
+        vertex_visible: (V,) bool vertex in the image and not occluded.
+        overflow: bool, a patch-size class exceeded its capacity (some triangles were not drawn).
+        near_clipped: int32 triangles dropped for crossing the near plane.
+    """
+
+    depth: jax.Array
+    face_id: jax.Array
+    bary: jax.Array
+    p_model: jax.Array
+    part_id: jax.Array
+    vertex_visible: jax.Array
+    overflow: jax.Array
+    near_clipped: jax.Array
+
+    @property
+    def silhouette(self):
+        return self.face_id >= 0
+
+
+def _project_vertices(mesh: Mesh, camera: Camera, model: KinematicModel, T_world_root, theta):
+    """Camera-frame vertices (V, 3) and ideal pixels (V, 2) (distortion is not rendered)."""
+    T_parts = part_transforms(model, T_world_root, theta)
+    T_cam_parts = camera.T_cam_world @ T_parts
+    T = T_cam_parts[0] if model.num_parts == 1 else T_cam_parts[mesh.vertex_part]
+    v = mesh.vertices
+    p_cam = jnp.stack(
+        [T[..., i, 0] * v[:, 0] + T[..., i, 1] * v[:, 1] + T[..., i, 2] * v[:, 2] + T[..., i, 3] for i in range(3)], -1
+    )
+    z = p_cam[:, 2]
+    safe_z = jnp.where(jnp.abs(z) > 1e-6, z, 1e-6)
+    K = camera.K
+    x, y = p_cam[:, 0] / safe_z, p_cam[:, 1] / safe_z
+    px = jnp.stack([K[0, 0] * x + K[0, 1] * y + K[0, 2], K[1, 1] * y + K[1, 2]], -1)
+    return p_cam, px
+
+
+def _face_boxes(px_f, valid, width, height):
+    """Integer pixel boxes [x0, x1] x [y0, y1] of pixel centres inside each face's bbox, clipped."""
+    lo = jnp.ceil(jnp.min(px_f, axis=1))
+    hi = jnp.floor(jnp.max(px_f, axis=1))
+    lo = jnp.maximum(lo, 0)
+    hi = jnp.minimum(hi, jnp.array([width - 1, height - 1], px_f.dtype))
+    extent = jnp.max(hi - lo + 1, axis=1)
+    on_screen = valid & jnp.all(hi >= lo, axis=1)
+    return lo.astype(jnp.int32), extent, on_screen
+
+
+def _edge(ax, ay, bx, by, px, py):
+    return (bx - ax) * (py - ay) - (by - ay) * (px - ax)
+
+
+def _rasterize_class(px_f, inv_z_f, faces_idx, lo, size: int, width: int, height: int):
+    """Candidates of one patch class: flat pixel index, depth and face (masked by coverage)."""
+    num = faces_idx.shape[0]
+    face_ok = faces_idx >= 0
+    f = jnp.where(face_ok, faces_idx, 0)
+    tri = px_f[f]  # (C, 3, 2)
+    iz = inv_z_f[f]  # (C, 3)
+    offs = jnp.arange(size, dtype=jnp.int32)
+    gx = lo[f, 0][:, None, None] + offs[None, None, :]
+    gy = lo[f, 1][:, None, None] + offs[None, :, None]
+    gx = jnp.broadcast_to(gx, (num, size, size)).reshape(num, -1)
+    gy = jnp.broadcast_to(gy, (num, size, size)).reshape(num, -1)
+    pxf, pyf = gx.astype(px_f.dtype), gy.astype(px_f.dtype)
+    ax, ay = tri[:, 0, 0:1], tri[:, 0, 1:2]
+    bx, by = tri[:, 1, 0:1], tri[:, 1, 1:2]
+    cx, cy = tri[:, 2, 0:1], tri[:, 2, 1:2]
+    area = _edge(ax, ay, bx, by, cx, cy)
+    safe_area = jnp.where(jnp.abs(area) > 1e-12, area, 1.0)
+    l0 = _edge(bx, by, cx, cy, pxf, pyf) / safe_area
+    l1 = _edge(cx, cy, ax, ay, pxf, pyf) / safe_area
+    l2 = 1.0 - l0 - l1
+    inside = (l0 >= 0) & (l1 >= 0) & (l2 >= 0) & (jnp.abs(area) > 1e-12)
+    inside = inside & face_ok[:, None] & (gx < width) & (gy < height)
+    inv_z = l0 * iz[:, 0:1] + l1 * iz[:, 1:2] + l2 * iz[:, 2:3]
+    depth = jnp.where(inside & (inv_z > 0), 1.0 / jnp.where(inv_z > 0, inv_z, 1.0), jnp.inf)
+    flat = jnp.where(inside, gy * width + gx, 0)
+    return flat.reshape(-1), depth.reshape(-1), jnp.broadcast_to(f[:, None], flat.shape).reshape(-1)
+
+
+def render(
+    mesh: Mesh,
+    camera: Camera,
+    T_world_root,
+    theta=None,
+    model: KinematicModel | None = None,
+    plan: RasterPlan | None = None,
+    vertex_depth_tolerance: float = 1e-3,
+) -> RenderOutput:
+    """Rasterise `mesh` at pose (T_world_root, Θ) in one camera. Jittable.
+
+    Args:
+        mesh: triangle mesh (V vertices, F faces) with per-vertex parts.
+        camera: a single camera (its width/height set the buffers).
+        T_world_root: (4, 4) root pose (model → world); theta: (J,) joint angles.
+        model: the kinematic tree (rigid if None).
+        plan: class capacities; if None, every face gets the largest class (slow, exact).
+        vertex_depth_tolerance: relative depth slack of the vertex visibility test.
+    """
+    model = rigid_model(mesh.vertices.dtype) if model is None else model
+    theta = jnp.zeros((model.num_joints,), mesh.vertices.dtype) if theta is None else theta
+    width, height = camera.width, camera.height
+    if plan is None:
+        plan = RasterPlan(patch_sizes=(max(width, height),), capacities=(mesh.num_faces,))
+    p_cam, px = _project_vertices(mesh, camera, model, T_world_root, theta)
+    px_f = px[mesh.faces]  # (F, 3, 2)
+    z_f = p_cam[mesh.faces, 2]  # (F, 3)
+    in_front = jnp.all(z_f > plan.near, axis=1)
+    near_clipped = jnp.sum(~in_front & jnp.any(z_f > 0, axis=1))
+    valid = in_front
+    if plan.cull_backfaces:
+        a, b, c = px_f[:, 0], px_f[:, 1], px_f[:, 2]
+        # Image y points down: CCW-from-outside faces facing the camera have negative signed area.
+        valid = valid & (_edge(a[:, 0], a[:, 1], b[:, 0], b[:, 1], c[:, 0], c[:, 1]) < 0)
+    inv_z_f = 1.0 / jnp.where(in_front[:, None], z_f, 1.0)
+    lo, extent, on_screen = _face_boxes(px_f, valid, width, height)
+
+    sizes = jnp.asarray(plan.patch_sizes)
+    cls = jnp.searchsorted(sizes, extent.astype(sizes.dtype), side="left")  # smallest size ≥ extent
+    cls = jnp.where(on_screen, cls, len(plan.patch_sizes))  # off-screen faces: no class
+    overflow = jnp.any(on_screen & (cls >= len(plan.patch_sizes)))
+    flats, depths, fids = [], [], []
+    for k, (size, cap) in enumerate(zip(plan.patch_sizes, plan.capacities)):
+        member = cls == k
+        slot = jnp.cumsum(member) - 1
+        overflow = overflow | (jnp.sum(member) > cap)
+        idx = jnp.full((cap,), -1, jnp.int32).at[jnp.where(member, slot, cap)].set(
+            jnp.arange(mesh.num_faces, dtype=jnp.int32), mode="drop"
+        )
+        f, d, i = _rasterize_class(px_f, inv_z_f, idx, lo, size, width, height)
+        flats.append(f)
+        depths.append(d)
+        fids.append(i)
+    flat = jnp.concatenate(flats)
+    depth_c = jnp.concatenate(depths)
+    fid_c = jnp.concatenate(fids)
+    depth = jnp.full((height * width,), jnp.inf, depth_c.dtype).at[flat].min(depth_c)
+    winner = jnp.where(jnp.isfinite(depth_c) & (depth_c <= depth[flat]), fid_c, -1)
+    face_id = jnp.full((height * width,), -1, jnp.int32).at[flat].max(winner)
+    depth = depth.reshape(height, width)
+    face_id = face_id.reshape(height, width)
+
+    # Surface point behind each pixel: back-project with the depth, express in the face's barycentrics.
+    covered = face_id >= 0
+    f = jnp.where(covered, face_id, 0)
+    tri = px_f[f]  # (H, W, 3, 2)
+    iz = inv_z_f[f]
+    gy, gx = jnp.meshgrid(jnp.arange(height, dtype=px.dtype), jnp.arange(width, dtype=px.dtype), indexing="ij")
+    area = _edge(tri[..., 0, 0], tri[..., 0, 1], tri[..., 1, 0], tri[..., 1, 1], tri[..., 2, 0], tri[..., 2, 1])
+    safe_area = jnp.where(jnp.abs(area) > 1e-12, area, 1.0)
+    s0 = _edge(tri[..., 1, 0], tri[..., 1, 1], tri[..., 2, 0], tri[..., 2, 1], gx, gy) / safe_area
+    s1 = _edge(tri[..., 2, 0], tri[..., 2, 1], tri[..., 0, 0], tri[..., 0, 1], gx, gy) / safe_area
+    screen = jnp.stack([s0, s1, 1 - s0 - s1], -1)
+    persp = screen * iz
+    bary = persp / jnp.sum(persp, axis=-1, keepdims=True)
+    bary = jnp.where(covered[..., None], bary, 0.0)
+    v_model = mesh.vertices[mesh.faces[f]]  # (H, W, 3, 3)
+    p_model = jnp.where(covered[..., None], jnp.sum(bary[..., None] * v_model, axis=-2), 0.0)
+    part_id = jnp.where(covered, mesh.face_part[f], -1)
+
+    # Vertex visibility: in the image and not behind the depth buffer at its pixel.
+    u = jnp.round(px[:, 0]).astype(jnp.int32)
+    v = jnp.round(px[:, 1]).astype(jnp.int32)
+    in_img = (u >= 0) & (u < width) & (v >= 0) & (v < height) & (p_cam[:, 2] > plan.near)
+    d_at = depth[jnp.clip(v, 0, height - 1), jnp.clip(u, 0, width - 1)]
+    vertex_visible = in_img & (p_cam[:, 2] <= d_at * (1 + vertex_depth_tolerance) + 1e-3)
+    return RenderOutput(depth, face_id, bary, p_model, part_id, vertex_visible, overflow, near_clipped.astype(jnp.int32))
+
+
+def face_extents(mesh: Mesh, camera: Camera, T_world_root, theta=None, model=None):
+    """Host helper: on-screen pixel extent of every face (for planning)."""
+    model = rigid_model(mesh.vertices.dtype) if model is None else model
+    theta = jnp.zeros((model.num_joints,), mesh.vertices.dtype) if theta is None else theta
+    p_cam, px = _project_vertices(mesh, camera, model, jnp.asarray(T_world_root, mesh.vertices.dtype), theta)
+    valid = jnp.all(p_cam[mesh.faces, 2] > 0, axis=1)
+    _, extent, on_screen = _face_boxes(px[mesh.faces], valid, camera.width, camera.height)
+    return np.asarray(jnp.where(on_screen, extent, 0))
+
+
+def plan_raster(
+    extents, margin: float = 1.3, minimum: int = 16, patch_sizes=PATCH_SIZES, max_size=None, cull_backfaces=False
+) -> RasterPlan:
+    """Capacities per class from observed face extents (one or more frames), with a margin.
+
+    Capacities are rounded up to multiples of 32 so that a slowly changing object keeps its plan.
+    """
+    extents = np.atleast_2d(np.asarray(extents))
+    sizes = [s for s in patch_sizes if max_size is None or s < max_size] + ([max_size] if max_size else [])
+    sizes = tuple(sorted(set(sizes)))
+    caps = []
+    for k, s in enumerate(sizes):
+        lower = sizes[k - 1] if k else 0
+        count = max(int(np.sum((extents > lower) & (extents <= s), axis=1).max()), 0)
+        need = max(int(np.ceil(count * margin)), minimum if count else 0)
+        caps.append(int(32 * np.ceil(need / 32)) if need else 0)
+    kept = [(s, c) for s, c in zip(sizes, caps) if c > 0]
+    if not kept:
+        kept = [(sizes[0], minimum)]
+    return RasterPlan(
+        patch_sizes=tuple(s for s, _ in kept), capacities=tuple(c for _, c in kept), cull_backfaces=cull_backfaces
+    )
+
+
+class Renderer:
+    """Host-side convenience: a jitted `render` of one mesh and camera that plans its own capacities.
+
+    The plan comes from the first pose; when a render reports overflow the plan is redone from the
+    face extents of that pose (with margin, merged with the old plan) and the frame re-rendered. Each
+    new plan is one compilation; `compilations` counts them.
+    """
+
+    def __init__(self, mesh: Mesh, camera: Camera, model: KinematicModel | None = None, cull_backfaces: bool = False):
+        self.mesh, self.camera, self.model = mesh, camera, model
+        self.cull_backfaces = cull_backfaces
+        self.plan: RasterPlan | None = None
+        self.compilations = 0
+        self._fn = None
+
+    def _replan(self, T_world_root, theta):
+        ext = face_extents(self.mesh, self.camera, T_world_root, theta, self.model)
+        new = plan_raster(ext, cull_backfaces=self.cull_backfaces)
+        if self.plan is not None:  # never shrink: merge capacities class by class
+            caps = dict(zip(self.plan.patch_sizes, self.plan.capacities))
+            for size, cap in zip(new.patch_sizes, new.capacities):
+                caps[size] = max(cap, caps.get(size, 0))
+            sizes = tuple(sorted(caps))
+            new = RasterPlan(sizes, tuple(caps[s] for s in sizes), cull_backfaces=self.cull_backfaces)
+        self.plan = new
+        mesh, camera, model, plan = self.mesh, self.camera, self.model, new
+        self._fn = jax.jit(lambda T, th: render(mesh, camera, T, th, model, plan))
+        self.compilations += 1
+
+    def __call__(self, T_world_root, theta=None) -> RenderOutput:
+        T_world_root = jnp.asarray(T_world_root, self.mesh.vertices.dtype)
+        if theta is None:
+            theta = jnp.zeros((0 if self.model is None else self.model.num_joints,), T_world_root.dtype)
+        if self._fn is None:
+            self._replan(T_world_root, theta)
+        out = self._fn(T_world_root, theta)
+        if bool(out.overflow):
+            self._replan(T_world_root, theta)
+            out = self._fn(T_world_root, theta)
+        return out

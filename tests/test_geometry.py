@@ -1,0 +1,128 @@
+"""Kinematic chains, cameras (against OpenCV) and Plücker lines."""
+
+import cv2
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxtrack.geometry import (
+    backproject_pixels,
+    chain_model,
+    make_camera,
+    part_transforms,
+    pixel_rays_world,
+    plucker_from_ray,
+    point_line_distance,
+    point_line_residual,
+    project_points,
+    rigid_model,
+    se3_exp,
+    select_camera,
+    stack_cameras,
+    undistort_points,
+)
+from jaxtrack.synth import demo_chain, look_at
+
+K = np.array([[810.0, 0.0, 322.5], [0.0, 790.0, 241.0], [0.0, 0.0, 1.0]])
+DIST = np.array([-0.21, 0.08, 0.0012, -0.0007, -0.01])
+
+
+def _rodrigues_joint(axis, point, angle):
+    """Rotation by `angle` about the line through `point` with direction `axis`, as a 4x4 matrix."""
+    R, _ = cv2.Rodrigues(np.asarray(axis, float) / np.linalg.norm(axis) * angle)
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = point - R @ point
+    return T
+
+
+def test_forward_kinematics_matches_explicit_composition():
+    # Tree: 0 root; 1 on 0; 2 on 1; 3 on 0 (second branch).
+    axes = [(0, 0, 1), (0, 1, 0), (1, 0, 0)]
+    points = [(100.0, 0, 0), (200.0, 0, 0), (-100.0, 0, 0)]
+    model = chain_model([-1, 0, 1, 0], axes, points, dtype=jnp.float64)
+    theta = np.array([0.3, -0.7, 1.1])
+    T_root = np.asarray(se3_exp(jnp.array([10.0, -5, 900, 0.1, 0.2, -0.3])))
+    got = np.asarray(part_transforms(model, jnp.asarray(T_root), jnp.asarray(theta)))
+    E = [_rodrigues_joint(a, np.array(q), t) for a, q, t in zip(axes, points, theta)]
+    expected = [T_root, T_root @ E[0], T_root @ E[0] @ E[1], T_root @ E[2]]
+    np.testing.assert_allclose(got, np.stack(expected), atol=1e-10)
+    # A rigid model is one part at the root pose.
+    np.testing.assert_allclose(part_transforms(rigid_model(jnp.float64), jnp.asarray(T_root), jnp.zeros(0))[0], T_root)
+
+
+def test_chain_model_rejects_bad_trees():
+    with pytest.raises(ValueError, match="parents\\[0\\]"):
+        chain_model([0, 0], [(0, 0, 1)], [(0, 0, 0)])
+    with pytest.raises(ValueError, match="earlier part"):
+        chain_model([-1, 2, 0], [(0, 0, 1)] * 2, [(0, 0, 0)] * 2)
+    with pytest.raises(ValueError, match="axis"):
+        chain_model([-1, 0], [(0, 0, 0)], [(0, 0, 0)])
+
+
+def test_forward_kinematics_derivatives_agree_with_finite_differences():
+    model = demo_chain(4, branches=2, dtype=jnp.float64)
+    theta0 = jnp.array([0.2, -0.4, 0.9, 0.1])
+    T_root = se3_exp(jnp.array([1.0, 2.0, 800.0, 0.3, -0.2, 0.1]))
+    f = lambda th: part_transforms(model, T_root, th)  # noqa: E731
+    fwd, rev = jax.jacfwd(f)(theta0), jax.jacrev(f)(theta0)
+    eps = 1e-6
+    fd = np.stack([(f(theta0.at[j].add(eps)) - f(theta0.at[j].add(-eps))) / (2 * eps) for j in range(4)], -1)
+    np.testing.assert_allclose(fwd, rev, atol=1e-12)
+    np.testing.assert_allclose(fwd, fd, atol=1e-6)
+
+
+def _camera(dist=DIST):
+    R, t = look_at([300.0, -200.0, -900.0])
+    return make_camera(K, 640, 480, R, t, dist=dist, dtype=jnp.float64), R, t
+
+
+def test_projection_and_undistortion_match_opencv():
+    cam, R, t = _camera()
+    rng = np.random.default_rng(0)
+    p_world = rng.uniform(-150, 150, size=(200, 3))
+    px, depth = project_points(cam, jnp.asarray(p_world))
+    rvec, _ = cv2.Rodrigues(R)
+    px_cv, _ = cv2.projectPoints(p_world, rvec, t, K, DIST)
+    np.testing.assert_allclose(px, px_cv[:, 0], atol=1e-6)
+    np.testing.assert_allclose(depth, (p_world @ R.T + t)[:, 2], atol=1e-9)
+    ideal = undistort_points(cam, px)
+    ideal_cv = cv2.undistortPoints(
+        px_cv, K, DIST, None, None, K, (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
+    )[:, 0]
+    np.testing.assert_allclose(ideal, ideal_cv, atol=1e-3)
+    # The undistorted pixels are the pinhole projections of the same points.
+    pinhole, _ = project_points(make_camera(K, 640, 480, R, t, dtype=jnp.float64), jnp.asarray(p_world))
+    np.testing.assert_allclose(ideal, pinhole, atol=1e-3)
+
+
+def test_backprojection_rays_and_plucker_lines():
+    cam, _, _ = _camera(dist=None)
+    rng = np.random.default_rng(1)
+    p_world = jnp.asarray(rng.uniform(-150, 150, size=(50, 3)))
+    px, depth = project_points(cam, p_world)
+    np.testing.assert_allclose(backproject_pixels(cam, px, depth), p_world, atol=1e-9)
+    origin, direction = pixel_rays_world(cam, px)
+    n, m = plucker_from_ray(origin, direction)
+    np.testing.assert_allclose(point_line_distance(p_world, n, m), 0.0, atol=1e-9)
+    np.testing.assert_allclose(np.linalg.norm(n, axis=-1), 1.0)
+    # A point moved by d perpendicular to the ray lies at distance d, and r ⊥ n.
+    perp = np.cross(np.asarray(n), np.array([0.0, 0.0, 1.0]))
+    perp /= np.linalg.norm(perp, axis=-1, keepdims=True)
+    moved = p_world + 7.5 * perp
+    np.testing.assert_allclose(point_line_distance(moved, n, m), 7.5, atol=1e-9)
+    np.testing.assert_allclose(np.sum(point_line_residual(moved, n, m) * n, -1), 0.0, atol=1e-9)
+
+
+def test_camera_rig_batches_and_rejects_bad_input():
+    cams = stack_cameras([_camera(None)[0], make_camera(K, 640, 480, dtype=jnp.float64)])
+    assert cams.K.shape == (2, 3, 3) and cams.T_cam_world.shape == (2, 4, 4)
+    cam1 = select_camera(cams, 1)
+    np.testing.assert_allclose(cam1.T_cam_world, np.eye(4))
+    with pytest.raises(ValueError, match="K"):
+        make_camera(np.eye(2), 640, 480)
+    with pytest.raises(ValueError, match="rotation"):
+        make_camera(K, 640, 480, R_cam_world=np.ones(9))
+    with pytest.raises(ValueError, match="image size"):
+        stack_cameras([make_camera(K, 640, 480), make_camera(K, 320, 240)])

@@ -1,0 +1,274 @@
+"""Pose solver (eq. 3-5): recovery of known poses, noise bound, degenerate input, jit/vmap, gradients."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+import jaxtrack as jt
+from jaxtrack.geometry import se3_inverse, se3_log
+from jaxtrack.solve import PoseStatus, SolverConfig, make_correspondences, pad_rows, solve_pose
+from jaxtrack.solve._normal_equations import line_planes, plane_normal_equations
+from jaxtrack.synth import demo_chain, perturb_pose, random_pose_scene
+
+MODELS = {
+    "rigid": lambda: jt.rigid_model(jnp.float64),
+    "chain3": lambda: demo_chain(3, dtype=jnp.float64),
+    "tree2x2": lambda: demo_chain(4, branches=2, dtype=jnp.float64),
+}
+
+
+def _corr(scene, capacity=None, weight=None):
+    return make_correspondences(
+        scene.cameras,
+        scene.pixel,
+        scene.p_model,
+        camera_index=scene.camera_index,
+        part=scene.part,
+        weight=weight,
+        capacity=capacity,
+        num_parts=scene.model.num_parts,
+    )
+
+
+def _pose_error(sol, scene):
+    err = np.asarray(se3_log(sol.T_world_root @ se3_inverse(jnp.asarray(scene.T_world_root))))
+    return err, np.abs(np.asarray(sol.theta) - scene.theta)
+
+
+@pytest.mark.parametrize("model_name", list(MODELS))
+@pytest.mark.parametrize("num_cameras", [1, 2, 4])
+@pytest.mark.parametrize("backend", ["gauss-newton", "optimistix"])
+def test_recovers_known_pose_noise_free(model_name, num_cameras, backend):
+    model = MODELS[model_name]()
+    scene = random_pose_scene(3 + num_cameras, num_points=150, num_cameras=num_cameras, model=model)
+    rng = np.random.default_rng(7)
+    T0 = perturb_pose(rng, scene.T_world_root, max_angle=0.35, max_translation=40.0)
+    theta0 = scene.theta + rng.uniform(-0.2, 0.2, size=model.num_joints)
+    sol = jt.estimate_pose(model, _corr(scene), T0, theta0, SolverConfig(max_steps=100, backend=backend))
+    assert int(sol.status) == PoseStatus.OK
+    err, theta_err = _pose_error(sol, scene)
+    assert np.abs(err).max() < 1e-6, err
+    assert theta_err.max(initial=0.0) < 1e-6
+    assert float(sol.cost) < 1e-10
+
+
+@pytest.mark.parametrize("model_name", ["rigid", "chain3"])
+def test_noise_within_derived_bound(model_name):
+    """With σ = 1 px pixel noise the error follows the Gauss-Newton covariance (eq. 5).
+
+    For an unweighted least-squares estimate the covariance is the sandwich H⁻¹ (Σ σ_i² J_iᵀJ_i) H⁻¹
+    with σ_i = σ_px · z_i / f the pixel noise seen at the point's depth (mm across the ray). The error
+    e = (log(T T_gt⁻¹), Θ − Θ_gt) must then satisfy eᵀ Cov⁻¹ e < χ²_D(0.9999) in every trial.
+    """
+    model = MODELS[model_name]()
+    sigma_px, focal = 1.0, 800.0
+    bound = chi2.ppf(0.9999, model.num_dof)
+    stats = []
+    for seed in range(10):
+        scene = random_pose_scene(seed, num_points=300, noise_px=sigma_px, num_cameras=2, model=model)
+        corr = _corr(scene)
+        sol = solve_pose(model, corr, jnp.asarray(scene.T_world_root), jnp.asarray(scene.theta))
+        assert int(sol.status) == PoseStatus.OK
+        # Depth of each point in its camera, at the true pose.
+        T_parts = np.asarray(jt.part_transforms(model, jnp.asarray(scene.T_world_root), jnp.asarray(scene.theta)))
+        p_world = np.einsum("nij,nj->ni", T_parts[scene.part, :3, :3], scene.p_model) + T_parts[scene.part, :3, 3]
+        T_cw = np.asarray(scene.cameras.T_cam_world)[scene.camera_index]
+        depth = np.einsum("nj,nj->n", T_cw[:, 2, :3], p_world) + T_cw[:, 2, 3]
+        sigma_mm = sigma_px * depth / focal
+        normals, offsets = line_planes(corr.n, corr.m)
+        args = (model, jnp.asarray(scene.T_world_root), jnp.asarray(scene.theta), corr.p_model, corr.part, normals, offsets)
+        H, _, _ = plane_normal_equations(*args, jnp.ones(len(depth)))
+        S, _, _ = plane_normal_equations(*args, jnp.asarray(sigma_mm**2))
+        H_inv = np.linalg.inv(np.asarray(H))
+        cov = H_inv @ np.asarray(S) @ H_inv
+        err, _ = _pose_error(sol, scene)
+        e = np.concatenate([err, np.asarray(sol.theta) - scene.theta])
+        stats.append(e @ np.linalg.solve(cov, e))
+    assert max(stats) < bound, (stats, bound)
+    # The statistic is χ²_D distributed: its mean over the trials is near D, not ≪ D (the bound is tight).
+    assert 0.25 * model.num_dof < np.mean(stats) < 2.5 * model.num_dof
+
+
+def test_padding_count_does_not_matter_and_compiles_once():
+    model = jt.rigid_model(jnp.float64)
+    capacity = 256
+
+    @jax.jit
+    @eqx.debug.assert_max_traces(max_traces=1)
+    def solve(corr, T0):
+        return solve_pose(model, corr, T0)
+
+    rng = np.random.default_rng(0)
+    for i in range(100):
+        count = int(rng.integers(4, capacity))
+        scene = random_pose_scene(i, num_points=count)
+        T0 = perturb_pose(rng, scene.T_world_root, 0.2, 20.0)
+        sol = solve(_corr(scene, capacity=capacity), jnp.asarray(T0))
+        err, _ = _pose_error(sol, scene)
+        assert int(sol.status) == PoseStatus.OK and np.abs(err).max() < 1e-6, (i, count)
+        assert int(sol.num_effective) == count
+
+
+def test_vmap_over_weight_vectors_equals_loop():
+    model = demo_chain(3, dtype=jnp.float64)
+    scene = random_pose_scene(11, num_points=120, noise_px=1.5, num_cameras=2, model=model)
+    corr = _corr(scene)
+    weights = jnp.asarray(np.random.default_rng(3).uniform(0.0, 2.0, size=(64, 120)))
+    T0, th0 = jnp.asarray(scene.T_world_root), jnp.asarray(scene.theta)
+    solve = lambda w: solve_pose(model, corr.with_weight(w), T0, th0)  # noqa: E731
+    batched = jax.jit(jax.vmap(solve))(weights)
+    single = jax.jit(solve)
+    for k in range(64):
+        one = single(weights[k])
+        np.testing.assert_allclose(batched.T_world_root[k], one.T_world_root, atol=1e-9)
+        np.testing.assert_allclose(batched.theta[k], one.theta, atol=1e-9)
+        assert int(batched.status[k]) == int(one.status)
+
+
+def test_vmap_over_initial_poses_and_correspondence_sets():
+    model = jt.rigid_model(jnp.float64)
+    scenes = [random_pose_scene(s, num_points=80, noise_px=0.5) for s in range(8)]
+    corr = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *[_corr(s, capacity=100) for s in scenes])
+    rng = np.random.default_rng(5)
+    T0 = jnp.asarray(np.stack([perturb_pose(rng, s.T_world_root, 0.3, 30.0) for s in scenes]))
+    out = jax.vmap(lambda c, T: solve_pose(model, c, T))(corr, T0)
+    for k, s in enumerate(scenes):
+        sol = solve_pose(model, jax.tree_util.tree_map(lambda x: x[k], corr), T0[k])
+        np.testing.assert_allclose(out.T_world_root[k], sol.T_world_root, atol=1e-8)
+
+
+TIGHT = SolverConfig(max_steps=100, rtol=1e-13, atol=1e-13)
+
+
+def _translation_of_weights(model, corr, T0, th0):
+    @jax.jit
+    def f(w):
+        sol = solve_pose(model, corr.with_weight(w), T0, th0, TIGHT)
+        return jnp.concatenate([sol.T_world_root[:3, 3], sol.T_world_root[:3, :3].ravel(), sol.theta])
+
+    return f
+
+
+@pytest.mark.parametrize("model_name", ["rigid", "chain3"])
+def test_solution_derivative_wrt_weights_matches_finite_differences(model_name):
+    model = MODELS[model_name]()
+    scene = random_pose_scene(21, num_points=40, noise_px=2.0, num_cameras=2, model=model)
+    corr = _corr(scene)
+    w0 = jnp.asarray(np.random.default_rng(2).uniform(0.5, 1.5, size=40))
+    f = _translation_of_weights(model, corr, jnp.asarray(scene.T_world_root), jnp.asarray(scene.theta))
+    fwd = jax.jacfwd(f)(w0)
+    rev = jax.jacrev(f)(w0)
+    eps = 1e-4
+    fd = np.stack([(f(w0.at[i].add(eps)) - f(w0.at[i].add(-eps))) / (2 * eps) for i in range(40)], -1)
+    assert np.abs(fd).max() > 1e-3  # the weights do move the solution
+    np.testing.assert_allclose(fwd, rev, atol=1e-8)
+    np.testing.assert_allclose(fwd, fd, atol=1e-6 * max(1.0, np.abs(fd).max()))
+
+
+def test_solution_derivative_wrt_model_points():
+    model = jt.rigid_model(jnp.float64)
+    scene = random_pose_scene(4, num_points=30, noise_px=1.0)
+    corr = _corr(scene)
+    T0 = jnp.asarray(scene.T_world_root)
+
+    @jax.jit
+    def f(p):
+        return solve_pose(model, eqx.tree_at(lambda c: c.p_model, corr, p), T0, None, TIGHT).T_world_root[:3, 3]
+
+    p0 = corr.p_model
+    J = jax.jacrev(f)(p0)
+    eps = 1e-5
+    for i, k in [(0, 0), (7, 2), (19, 1)]:
+        fd = (f(p0.at[i, k].add(eps)) - f(p0.at[i, k].add(-eps))) / (2 * eps)
+        np.testing.assert_allclose(J[:, i, k], fd, atol=1e-6)
+
+
+def test_residual_derivatives_agree():
+    model = demo_chain(3, dtype=jnp.float64)
+    scene = random_pose_scene(8, num_points=20, noise_px=1.0, model=model)
+    corr = _corr(scene)
+
+    def r(x):
+        return jt.solve.plucker_residuals(model, jt.se3_exp(x[:6]) @ jnp.asarray(scene.T_world_root), x[6:], corr)
+
+    x0 = jnp.concatenate([jnp.zeros(6), jnp.asarray(scene.theta)])
+    fwd, rev = jax.jacfwd(r)(x0), jax.jacrev(r)(x0)
+    eps = 1e-6
+    fd = np.stack([(r(x0.at[i].add(eps)) - r(x0.at[i].add(-eps))) / (2 * eps) for i in range(9)], -1)
+    np.testing.assert_allclose(fwd, rev, atol=1e-10)
+    np.testing.assert_allclose(fwd, fd, atol=1e-5)
+
+
+def test_degenerate_inputs_give_status_or_clear_errors():
+    model = jt.rigid_model(jnp.float64)
+    scene = random_pose_scene(0, num_points=10)
+    T0 = jnp.asarray(scene.T_world_root)
+    # Two correspondences: 4 constraints for 6 DoF.
+    few = _corr(scene, capacity=10, weight=np.r_[np.ones(2), np.zeros(8)])
+    sol = solve_pose(model, few, T0)
+    assert int(sol.status) == PoseStatus.TOO_FEW and np.isfinite(sol.T_world_root).all()
+    np.testing.assert_allclose(sol.T_world_root, T0)
+    with pytest.raises(ValueError, match="too few"):
+        jt.estimate_pose(model, few, T0)
+    # NaN in a weighted row inside jit: a status, the initial pose, no NaN.
+    corr = _corr(scene)
+    bad = eqx.tree_at(lambda c: c.p_model, corr, corr.p_model.at[3, 1].set(jnp.nan))
+    sol = jax.jit(lambda c: solve_pose(model, c, T0))(bad)
+    assert int(sol.status) == PoseStatus.INVALID_INPUT and np.isfinite(sol.T_world_root).all()
+    with pytest.raises(ValueError, match="non-finite"):
+        jt.estimate_pose(model, bad, T0)
+    # NaN in a padded (zero-weight) row is harmless.
+    padded = eqx.tree_at(lambda c: (c.p_model, c.weight), corr, (corr.p_model.at[3].set(jnp.nan), corr.weight.at[3].set(0.0)))
+    assert int(solve_pose(model, padded, T0).status) == PoseStatus.OK
+    # Negative weights.
+    neg = corr.with_weight(corr.weight.at[0].set(-1.0))
+    assert int(solve_pose(model, neg, T0).status) == PoseStatus.INVALID_INPUT
+    # Builder errors name the argument.
+    with pytest.raises(ValueError, match="pixel must have shape"):
+        make_correspondences(scene.cameras, scene.pixel[:, :1], scene.p_model)
+    with pytest.raises(ValueError, match="p_model must have shape"):
+        make_correspondences(scene.cameras, scene.pixel, scene.p_model[:5])
+    with pytest.raises(ValueError, match="weight must be ≥ 0"):
+        make_correspondences(scene.cameras, scene.pixel, scene.p_model, weight=-np.ones(10))
+    with pytest.raises(ValueError, match="pixel has non-finite"):
+        make_correspondences(scene.cameras, np.full((10, 2), np.nan), scene.p_model)
+    with pytest.raises(ValueError, match="exceed the capacity"):
+        make_correspondences(scene.cameras, scene.pixel, scene.p_model, capacity=5)
+    with pytest.raises(ValueError, match="T_init must have shape"):
+        jt.estimate_pose(model, corr, np.eye(3))
+    with pytest.raises(ValueError, match="backend"):
+        SolverConfig(backend="newton")
+
+
+def test_unobserved_joint_is_damped_not_nan():
+    """Rank deficiency: no point on the last link; LM keeps that angle at its start value."""
+    model = demo_chain(3, dtype=jnp.float64)
+    scene = random_pose_scene(5, num_points=200, model=model)
+    keep = scene.part != 3
+    corr = _corr(scene, weight=keep.astype(float))
+    theta0 = jnp.asarray(scene.theta).at[2].set(0.123)
+    sol = solve_pose(model, corr, jnp.asarray(scene.T_world_root), theta0)
+    assert int(sol.status) <= PoseStatus.MAX_STEPS
+    assert np.isfinite(sol.theta).all()
+    np.testing.assert_allclose(sol.theta[:2], scene.theta[:2], atol=1e-6)
+    assert float(sol.theta[2]) == pytest.approx(0.123, abs=1e-6)
+
+
+def test_float32_solve_is_accurate():
+    model = jt.rigid_model(jnp.float32)
+    scene = random_pose_scene(2, num_points=200, dtype=np.float32)
+    corr = make_correspondences(scene.cameras, scene.pixel, scene.p_model)
+    assert corr.n.dtype == jnp.float32
+    T0 = perturb_pose(np.random.default_rng(0), scene.T_world_root, 0.3, 30.0)
+    sol = solve_pose(model, corr, jnp.asarray(T0, jnp.float32))
+    assert sol.T_world_root.dtype == jnp.float32
+    err, _ = _pose_error(sol, scene)
+    assert np.abs(err[3:]).max() < 1e-4 and np.abs(err[:3]).max() < 0.1
+
+
+def test_pad_rows():
+    assert pad_rows(np.ones((2, 3)), 5).shape == (5, 3)
+    assert pad_rows(np.ones(2), 4).tolist() == [1, 1, 0, 0]
