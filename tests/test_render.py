@@ -53,18 +53,19 @@ def _mixed_mesh():
 
 
 @pytest.mark.parametrize(
-    "name, mesh_fn, eye",
+    "name, mesh_fn, eye, cull",
     [
-        ("torus", torus_mesh, [0, -250, -350]),
-        ("box", lambda: box_mesh((160, 70, 80)), [120, -160, -300]),
-        ("mixed", _mixed_mesh, [30, -20, -420]),
+        ("torus", torus_mesh, [0, -250, -350], False),
+        ("torus-culled", torus_mesh, [0, -250, -350], True),
+        ("box-culled", lambda: box_mesh((160, 70, 80)), [120, -160, -300], True),
+        ("mixed", _mixed_mesh, [30, -20, -420], False),
     ],
 )
-def test_matches_ray_caster(name, mesh_fn, eye):
+def test_matches_ray_caster(name, mesh_fn, eye, cull):
     mesh = mesh_fn()
     cam, R, t = _camera(eye)
     T = jnp.eye(4)
-    plan = plan_raster(face_extents(mesh, cam, T))
+    plan = plan_raster(face_extents(mesh, cam, T, cull_backfaces=cull), cull_backfaces=cull)
     out = jax.jit(lambda T: render(mesh, cam, T, plan=plan))(T)
     assert not bool(out.overflow)
     face_ref, depth_ref = ray_cast(mesh, R, t)
@@ -90,7 +91,7 @@ def test_visibility_and_parts_of_an_articulated_mesh():
     mesh = make_mesh(verts, faces, vertex_part=np.r_[np.zeros(8), np.ones(8)])
     model = jt.chain_model([-1, 0], [(0, 1, 0)], [(0, 0, 0)])
     cam, R, t = _camera([0, 0, -400])
-    out = render(mesh, cam, jnp.eye(4), jnp.array([0.0]), model)
+    out = jt.render.Renderer(mesh, cam, model)(jnp.eye(4), jnp.array([0.0]))
     assert set(np.unique(np.asarray(out.part_id))) == {-1, 0, 1}
     # Front-face vertices (z = −20) are visible, back-face vertices (z = +20) are hidden.
     vis = np.asarray(out.vertex_visible)
@@ -112,11 +113,20 @@ def test_renders_compile_once_over_a_sequence():
         draw(jt.se3_exp(jnp.array([k * 2.0, 0, 0, 0, 0.02 * k, 0])))
 
 
-def test_overflow_is_reported_not_hidden():
+def test_overflow_is_reported_and_renderer_replans():
     mesh = torus_mesh()
     cam, _, _ = _camera([0, -250, -350])
     tiny = jt.render.RasterPlan(patch_sizes=(8,), capacities=(16,))
     assert bool(render(mesh, cam, jnp.eye(4), plan=tiny).overflow)
+    with pytest.raises(ValueError, match="RasterPlan"):
+        render(mesh, cam, jnp.eye(4))
+    # Moving the torus 3x closer makes every face bigger: the renderer re-plans once and stays exact.
+    renderer = jt.render.Renderer(mesh, cam)
+    far = renderer(jnp.eye(4))
+    near = renderer(jt.se3_exp(jnp.array([0.0, -125.0, -175.0, 0, 0, 0])))  # half-way to the camera
+    assert not bool(far.overflow) and not bool(near.overflow)
+    assert renderer.compilations == 2
+    assert int(near.silhouette.sum()) > 2 * int(far.silhouette.sum())
 
 
 def test_make_mesh_errors():
@@ -126,3 +136,20 @@ def test_make_mesh_errors():
         make_mesh(np.zeros((3, 3)), np.array([[0, 1, 5]]))
     with pytest.raises(ValueError, match="vertices"):
         make_mesh(np.zeros((3, 2)), np.array([[0, 1, 2]]))
+
+
+def test_silhouette_sdf_matches_exact_distance_transform():
+    import cv2
+
+    from jaxtrack.render import silhouette_sdf
+
+    mesh = torus_mesh()
+    cam, _, _ = _camera([0, -250, -350])
+    sil = np.asarray(jt.render.Renderer(mesh, cam)(jnp.eye(4)).silhouette)
+    phi = np.asarray(jax.jit(silhouette_sdf)(jnp.asarray(sil)))
+    d_in = cv2.distanceTransform(sil.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    d_out = cv2.distanceTransform((~sil).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    exact = np.where(sil, d_in - 0.5, -(d_out - 0.5))
+    assert ((phi > 0) == sil).all()
+    err = np.abs(phi - exact)
+    assert err.max() < 1.0 and err.mean() < 0.01, (err.max(), err.mean())
