@@ -1,0 +1,246 @@
+"""Synthetic tracking sequences with exact ground truth, written in the BOP scene layout.
+
+Deterministic given the seed. Objects: the meshes in ../shared/data/meshes (teapot, textured cracker
+box, milk truck) or built-in primitives (box); textured, photo-projected or homogeneous. Backgrounds:
+photographs that ship with scikit-image, or a flat colour. Motions: turntable, smooth random 6-DoF
+with a set inter-frame displacement, a moving camera, or poses read from a file. Degradations:
+Gaussian noise, salt (uniform random pixels), moving occluders (with per-frame ground-truth masks),
+frame-rate subsampling. 1-4 cameras on a ring.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import pathlib
+
+import cv2
+import numpy as np
+import trimesh
+
+from ..io import load_trimesh, write_camera_view
+from ._pose_scenes import look_at
+from ._raycast import RayCaster, background_plane, mesh_appearance
+
+SHARED_MESHES = pathlib.Path(os.environ.get("JAXTRACK_SHARED", pathlib.Path(__file__).resolve().parents[3] / "shared")) / "data" / "meshes"
+PHOTOS = ("coffee", "astronaut", "rocket", "chelsea", "brick", "gravel", "camera", "grass")
+
+
+@dataclasses.dataclass
+class SynthConfig:
+    """Everything that defines a synthetic sequence (all lengths in mm, angles in degrees)."""
+
+    object: str = "box"  # box | teapot | cracker_box | milk_truck | path to a mesh
+    size_mm: float = 160.0  # longest side after scaling
+    appearance: str = "photo"  # texture | photo | flat
+    texture_photo: str = "astronaut"
+    colour: tuple = (200.0, 60.0, 40.0)
+    background: str = "coffee"  # a scikit-image photo name or 'flat'
+    background_colour: tuple = (70.0, 70.0, 70.0)
+    motion: str = "random"  # turntable | random | camera | file
+    pose_file: str | None = None
+    frames: int = 30
+    step_px: float = 15.0  # random motion: image displacement per frame
+    step_deg: float = 5.0  # random / turntable rotation per frame
+    noise_sigma: float = 0.0
+    salt_fraction: float = 0.0
+    occluders: int = 0
+    cameras: int = 1
+    subsample: int = 1
+    width: int = 640
+    height: int = 480
+    focal: float = 700.0
+    distance: float = 600.0
+    seed: int = 0
+
+
+PRESETS = {
+    "teabox-large-motion": SynthConfig(object="box", appearance="photo", texture_photo="chelsea", size_mm=165, motion="random", step_px=30, step_deg=10, frames=40, background="coffee"),
+    "noisy-moving-camera": SynthConfig(object="cracker_box", appearance="texture", motion="camera", step_px=12, step_deg=3, noise_sigma=40, frames=40, background="brick"),
+    "turntable-teapot": SynthConfig(object="teapot", appearance="flat", colour=(210, 180, 60), motion="turntable", step_deg=6, frames=60, background="gravel", size_mm=220),
+    "turntable-truck": SynthConfig(object="milk_truck", appearance="texture", motion="turntable", step_deg=6, frames=60, background="grass", size_mm=240),
+    "occluded-box": SynthConfig(object="cracker_box", appearance="texture", motion="random", step_px=8, step_deg=3, occluders=2, frames=40, background="rocket"),
+    "stereo-noise": SynthConfig(object="box", appearance="photo", texture_photo="astronaut", motion="random", step_px=10, step_deg=4, cameras=2, noise_sigma=60, salt_fraction=0.1, frames=30, background="coffee"),
+}
+
+
+def photo(name: str) -> np.ndarray:
+    """A photograph shipped with scikit-image as float32 RGB in [0, 255]."""
+    import skimage.data  # noqa: PLC0415 (optional heavy import)
+
+    if name not in PHOTOS:
+        raise ValueError(f"unknown photo {name!r}; choose from {', '.join(PHOTOS)}")
+    img = getattr(skimage.data, name)()
+    if img.ndim == 2:
+        img = np.stack([img] * 3, -1)
+    return img[..., :3].astype(np.float32)
+
+
+def load_object(cfg: SynthConfig) -> trimesh.Trimesh:
+    """The object mesh centred at its bounding-box centre, scaled so its longest side is cfg.size_mm."""
+    named = {
+        "teapot": SHARED_MESHES / "utah_teapot_solid.stl",
+        "cracker_box": SHARED_MESHES / "ycb_003_cracker_box" / "cracker_box.obj",
+        "milk_truck": SHARED_MESHES / "CesiumMilkTruck.glb",
+    }
+    if cfg.object == "box":
+        tm = trimesh.creation.box(extents=(1.0, 0.41, 0.48))
+    elif cfg.object in named:
+        tm = load_trimesh(named[cfg.object])
+    else:
+        tm = load_trimesh(cfg.object)
+    tm = tm.copy()
+    tm.apply_translation(-tm.bounding_box.centroid)
+    tm.apply_scale(cfg.size_mm / tm.extents.max())
+    return tm
+
+
+def _rotation(axis, angle_rad):
+    R, _ = cv2.Rodrigues(np.asarray(axis, float) / np.linalg.norm(axis) * angle_rad)
+    return R
+
+
+def object_trajectory(cfg: SynthConfig, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """(T_world_obj (N, 4, 4), T_cam0_world (N, 4, 4)) before subsampling; world = first camera's target."""
+    n = cfg.frames * cfg.subsample
+    T_obj = np.repeat(np.eye(4)[None], n, 0)
+    T_obj[0, :3, :3] = _rotation(rng.normal(size=3), rng.uniform(0.3, 1.0))
+    R_cam, t_cam = look_at([0.0, -0.35 * cfg.distance, -cfg.distance])
+    T_cam = np.repeat(np.eye(4)[None], n, 0)
+    T_cam[:, :3, :3], T_cam[:, :3, 3] = R_cam, t_cam
+    step_deg = cfg.step_deg / cfg.subsample
+    step_mm = cfg.step_px / cfg.subsample * cfg.distance / cfg.focal
+    if cfg.motion == "file":
+        if not cfg.pose_file:
+            raise ValueError("motion 'file' needs pose_file (.npy of (N, 4, 4) object poses in mm)")
+        poses = np.load(cfg.pose_file)
+        if poses.ndim != 3 or poses.shape[1:] != (4, 4) or len(poses) < n:
+            raise ValueError(f"{cfg.pose_file}: need ({n}, 4, 4) poses, got {poses.shape}")
+        return poses[:n].astype(float), T_cam
+    axis = np.array([0.0, 1.0, 0.0]) + 0.3 * rng.normal(size=3)
+    direction = rng.normal(size=3) * [1, 1, 0.3]
+    # The object (or the camera's aim point) wanders within this radius of the view centre.
+    radius = 0.3 * min(cfg.width, cfg.height) * cfg.distance / cfg.focal
+    aim = np.zeros(3)
+    azimuth, elevation = 0.0, np.arctan2(0.35, 1.0)
+    for k in range(1, n):
+        T = T_obj[k - 1].copy()
+        axis = axis + 0.2 * rng.normal(size=3)
+        R_step = _rotation(axis, np.radians(step_deg))
+        # A smooth random walk of the direction, steered back towards the centre as it nears the edge.
+        here = T[:3, 3] if cfg.motion == "random" else aim
+        direction = direction / np.linalg.norm(direction) + 0.3 * rng.normal(size=3) * [1, 1, 0.3]
+        direction = direction - 2.0 * (np.linalg.norm(here) / radius) ** 2 * here / max(np.linalg.norm(here), 1e-9)
+        vel = direction / np.linalg.norm(direction) * step_mm
+        if cfg.motion == "turntable":
+            T[:3, :3] = _rotation([0.0, 1.0, 0.0], np.radians(step_deg)) @ T[:3, :3]
+        elif cfg.motion == "random":
+            T[:3, :3] = R_step @ T[:3, :3]
+            T[:3, 3] = T[:3, 3] + vel
+        elif cfg.motion == "camera":
+            # The camera orbits the static object by step_deg and re-aims at a wandering point,
+            # so the background sweeps by and the object moves by ~step_px in the image.
+            azimuth += np.radians(step_deg)
+            elevation = np.clip(elevation + 0.3 * np.radians(step_deg) * rng.normal(), 0.1, 0.9)
+            aim = aim + vel
+            eye = cfg.distance * np.array([np.sin(azimuth) * np.cos(elevation), -np.sin(elevation), -np.cos(azimuth) * np.cos(elevation)])
+            R_c, t_c = look_at(eye, target=aim)
+            T_cam[k, :3, :3], T_cam[k, :3, 3] = R_c, t_c
+        else:
+            raise ValueError(f"unknown motion {cfg.motion!r} (turntable, random, camera, file)")
+        T_obj[k] = T
+    return T_obj, T_cam
+
+
+def _occluder_masks(cfg, rng, n):
+    """Moving bars/discs that cross the image centre: (N, H, W) bool and their colours."""
+    masks = np.zeros((n, cfg.height, cfg.width), bool)
+    colours = []
+    yy, xx = np.mgrid[0 : cfg.height, 0 : cfg.width]
+    for _ in range(cfg.occluders):
+        start = rng.uniform([0, 0], [cfg.width, cfg.height])
+        end = np.array([cfg.width, cfg.height]) - start
+        radius = rng.uniform(0.06, 0.12) * cfg.width
+        colours.append(rng.uniform(20, 235, size=3))
+        disc = rng.random() < 0.5
+        for k in range(n):
+            c = start + (end - start) * k / max(n - 1, 1)
+            if disc:
+                m = (xx - c[0]) ** 2 + (yy - c[1]) ** 2 < radius**2
+            else:
+                m = (np.abs(xx - c[0]) < radius * 0.4) & (np.abs(yy - c[1]) < radius * 2.0)
+            masks[k] |= m
+        colours[-1] = (colours[-1], disc)
+    return masks, colours
+
+
+def render_sequence(cfg: SynthConfig, progress=None):
+    """Render all frames. Returns dict with images per camera (C, N, H, W, 3) uint8, T_cam_obj
+    (C, N, 4, 4), T_cam_world (C, N, 4, 4), K, object masks (C, N, H, W) and occluder masks (C, N, H, W)."""
+    rng = np.random.default_rng(cfg.seed)
+    tm = load_object(cfg)
+    tex_photo = photo(cfg.texture_photo) if cfg.appearance == "photo" else None
+    caster = RayCaster(tm, mesh_appearance(tm, cfg.appearance, tex_photo, cfg.colour))
+    bg = None if cfg.background == "flat" else photo(cfg.background)
+    T_obj, T_cam0 = object_trajectory(cfg, rng)
+    n = len(T_obj)
+    K = np.array([[cfg.focal, 0, (cfg.width - 1) / 2], [0, cfg.focal, (cfg.height - 1) / 2], [0, 0, 1]])
+    # Extra cameras on a ring around the object's start, looking at the origin.
+    rigs = [T_cam0]
+    for c in range(1, cfg.cameras):
+        a = 2 * np.pi * c / cfg.cameras
+        R, t = look_at([cfg.distance * np.sin(a), -0.35 * cfg.distance, -cfg.distance * np.cos(a)])
+        T = np.repeat(np.eye(4)[None], n, 0)
+        T[:, :3, :3], T[:, :3, 3] = R, t
+        rigs.append(T @ np.linalg.inv(T_cam0[0]) @ T_cam0 if cfg.motion == "camera" else T)
+    occ, occ_colours = _occluder_masks(cfg, rng, n)
+    keep = np.arange(0, n, cfg.subsample)
+    out = {"K": K, "images": [], "T_cam_obj": [], "T_cam_world": [], "object_mask": [], "occluder_mask": []}
+    for T_cam in rigs:
+        imgs, poses, objm, occm = [], [], [], []
+        for k in keep:
+            T_co = T_cam[k] @ T_obj[k]
+            face, depth, pts = caster.cast(K, T_co, cfg.width, cfg.height)
+            img = background_plane(bg, cfg.background_colour, K, T_cam[k], cfg.width, cfg.height)
+            hit = face >= 0
+            img[hit] = caster.shade(face, pts, T_co)[hit]
+            for (col, _), m in zip(occ_colours, [occ[k]] * len(occ_colours)):
+                img[m] = col
+            if cfg.noise_sigma > 0:
+                img = img + rng.normal(scale=cfg.noise_sigma, size=img.shape)
+            if cfg.salt_fraction > 0:
+                salt = rng.random(img.shape[:2]) < cfg.salt_fraction
+                img[salt] = rng.uniform(0, 255, size=(salt.sum(), 3))
+            imgs.append(np.clip(np.round(img), 0, 255).astype(np.uint8))
+            poses.append(T_co)
+            objm.append(hit)
+            occm.append(occ[k] & hit)
+            if progress is not None:
+                progress.update(1)
+        out["images"].append(np.stack(imgs))
+        out["T_cam_obj"].append(np.stack(poses))
+        out["T_cam_world"].append(T_cam[keep])
+        out["object_mask"].append(np.stack(objm))
+        out["occluder_mask"].append(np.stack(occm))
+    out["mesh"] = tm
+    return out
+
+
+def write_sequence(cfg: SynthConfig, root, progress=None) -> pathlib.Path:
+    """Render `cfg` and write it in the BOP layout under `root` (plus occluder masks and the config)."""
+    root = pathlib.Path(root)
+    seq = render_sequence(cfg, progress)
+    (root / "models").mkdir(parents=True, exist_ok=True)
+    seq["mesh"].export(root / "models" / "obj_000001.ply")
+    for c in range(len(seq["images"])):
+        folder = root / f"{c:06d}"
+        # GT per camera: the object pose in that camera; extrinsics of frame 0 place the rig.
+        write_camera_view(folder, seq["images"][c], seq["K"], {1: seq["T_cam_obj"][c]}, seq["T_cam_world"][c][0])
+        for name in ("object_mask", "occluder_mask"):
+            (folder / name).mkdir(exist_ok=True)
+            for k, m in enumerate(seq[name][c]):
+                cv2.imwrite(str(folder / name / f"{k:06d}.png"), m.astype(np.uint8) * 255)
+    cfg_dict = dataclasses.asdict(cfg)
+    (root / "synth_config.json").write_text(json.dumps(cfg_dict, indent=1))
+    return root
