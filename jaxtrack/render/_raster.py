@@ -229,11 +229,12 @@ def face_extents(mesh: Mesh, camera: Camera, T_world_root, theta=None, model=Non
 
 
 def plan_raster(
-    extents, margin: float = 1.3, minimum: int = 16, patch_sizes=PATCH_SIZES, max_size=None, cull_backfaces=False
+    extents, margin: float = 1.3, minimum: int = 8, patch_sizes=PATCH_SIZES, max_size=None, cull_backfaces=False
 ) -> RasterPlan:
     """Capacities per class from observed face extents (one or more frames), with a margin.
 
-    Capacities are rounded up to multiples of 32 so that a slowly changing object keeps its plan.
+    Capacities are rounded up to multiples of 8 (at least `minimum` for a class in use): a big-patch
+    class costs size² candidates per slot, so slack there is expensive.
     """
     extents = np.atleast_2d(np.asarray(extents))
     sizes = [s for s in patch_sizes if max_size is None or s < max_size] + ([max_size] if max_size else [])
@@ -243,7 +244,7 @@ def plan_raster(
         lower = sizes[k - 1] if k else 0
         count = max(int(np.sum((extents > lower) & (extents <= s), axis=1).max()), 0)
         need = max(int(np.ceil(count * margin)), minimum if count else 0)
-        caps.append(int(32 * np.ceil(need / 32)) if need else 0)
+        caps.append(int(8 * np.ceil(need / 8)) if need else 0)
     kept = [(s, c) for s, c in zip(sizes, caps) if c > 0]
     if not kept:
         kept = [(sizes[0], minimum)]
@@ -270,7 +271,9 @@ class Renderer:
 
     def _replan(self, T_world_root, theta):
         ext = face_extents(self.mesh, self.camera, T_world_root, theta, self.model, self.cull_backfaces)
-        new = plan_raster(ext, cull_backfaces=self.cull_backfaces)
+        # Each re-plan widens the margin (1.3, 1.95, 2.9, ...): a drifting object settles after a
+        # few compilations instead of re-planning every few frames.
+        new = plan_raster(ext, margin=1.3 * 1.5**self.compilations, cull_backfaces=self.cull_backfaces)
         if self.plan is not None:  # never shrink: merge capacities class by class
             caps = dict(zip(self.plan.patch_sizes, self.plan.capacities))
             for size, cap in zip(new.patch_sizes, new.capacities):
