@@ -74,10 +74,13 @@ def test_matches_ray_caster(name, mesh_fn, eye, cull):
     both = sil & sil_ref
     agree = (np.asarray(out.face_id)[both] == face_ref[both]).mean()
     depth_err = np.abs(np.asarray(out.depth)[both] - depth_ref[both])
+    same_face = np.asarray(out.face_id)[both] == face_ref[both]
     assert iou >= 0.999, iou
     assert agree >= 0.99, agree
-    # Depth: exact where both pick the same face (a different face on a shared edge has the same depth).
-    assert np.percentile(depth_err, 99.9) < 0.01 and depth_err.max() < 0.05, depth_err.max()
+    # Depth < 0.01 mm wherever both pick the same face; on a shared edge the other face's depth
+    # differs only by the slope across a fraction of a pixel.
+    assert depth_err[same_face].max() < 0.01, depth_err[same_face].max()
+    assert depth_err.max() < 0.05, depth_err.max()
     # Surface points lie on the ray of their pixel at the rendered depth.
     p_cam = np.asarray(out.p_model)[both] @ R.T + t
     np.testing.assert_allclose(p_cam[:, 2], np.asarray(out.depth)[both], atol=0.02)
