@@ -82,7 +82,7 @@ def to_markdown(rows, frames, command):
         "",
         f"Command: `{command}`  ",
         f"Machine: {platform.machine()}, JAX {jax.__version__} on {jax.devices()[0].platform}, 640x480, float32, "
-        "buffers: depth, face id, barycentrics, model points, part id, vertex visibility.",
+        "buffers: depth, face id, model points, part id, vertex visibility; back faces culled (closed meshes).",
         "",
         f"| mesh | faces | ms / render (same pose) | ms / render (median over {frames} frames) | first call incl. compile (s) | compilations over {frames} frames | final plan (patch: capacity) |",
         "|---|---:|---:|---:|---:|---:|---|",
