@@ -1,4 +1,4 @@
-"""Sequence and result I/O: the BOP scene layout, the BOP results CSV, meshes."""
+"""I/O: the BOP scene layout, the BOP results CSV, meshes, Middlebury .flo flow files."""
 
 from ._bop import CameraView as CameraView
 from ._bop import Sequence as Sequence
@@ -10,3 +10,8 @@ from ._bop import write_bop_results as write_bop_results
 from ._bop import write_camera_view as write_camera_view
 from ._meshes import load_mesh as load_mesh
 from ._meshes import load_trimesh as load_trimesh
+from ._flo import flow_errors as flow_errors
+from ._flo import flow_to_colour as flow_to_colour
+from ._flo import known_flow_mask as known_flow_mask
+from ._flo import read_flo as read_flo
+from ._flo import write_flo as write_flo
