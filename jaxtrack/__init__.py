@@ -4,6 +4,7 @@ An implementation of Brox, Rosenhahn, Gall and Cremers, "Combined Region- and Mo
 Tracking of Rigid and Articulated Objects" (TPAMI 2010).
 """
 
+from . import cues as cues
 from . import geometry as geometry
 from . import io as io
 from . import render as render

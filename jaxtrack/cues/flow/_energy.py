@@ -1,0 +1,115 @@
+"""The variational optical-flow energy of Brox et al. 2004 restricted to the object region (eq. 6).
+
+    E(u, v) = ∫_Ω1 r(x) Ψ(Σ_c |I2_c(x + w) − I1_c(x)|² + γ |∇I2_c(x + w) − ∇I1_c(x)|²) dx
+              + α ∫_Ω1 Ψ2(|∇u|² + |∇v|²) dx,            Ψ(s²) = sqrt(s² + ε²)
+
+with r(x) ∈ [0, 1] the occlusion weight (0 = occluded), Ω1 the object region, Ψ2 = Ψ (robust, α = 50,
+articulated) or Ψ2(s²) = s² (quadratic, α = 800, rigid). Colour channels are summed inside Ψ.
+I2 and ∇I2 are warped bilinearly; pixels whose warped position leaves the image carry no data term.
+Image gradients are central differences, flow gradients forward differences; a smoothness term
+counts only where both of its pixels lie in Ω1.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+
+class FlowEnergyParams(eqx.Module):
+    """Parameters of eq. 6 (arrays, so sweeping or differentiating them does not recompile).
+
+    Attributes:
+        alpha: smoothness weight α.
+        gamma: gradient-constancy weight γ.
+        epsilon: ε of Ψ(s²) = sqrt(s² + ε²).
+        robust_smoothness: Ψ2 = Ψ if True, quadratic otherwise (static: it changes the function).
+    """
+
+    alpha: jax.Array
+    gamma: jax.Array
+    epsilon: jax.Array
+    robust_smoothness: bool = eqx.field(static=True, default=True)
+
+
+def articulated_params() -> FlowEnergyParams:
+    """The paper's articulated setting: robust smoothness, α = 50, γ = 5, ε = 0.001."""
+    return FlowEnergyParams(jnp.asarray(50.0), jnp.asarray(5.0), jnp.asarray(1e-3), True)
+
+
+def rigid_params() -> FlowEnergyParams:
+    """The paper's rigid setting: quadratic smoothness, α = 800, γ = 5, ε = 0.001."""
+    return FlowEnergyParams(jnp.asarray(800.0), jnp.asarray(5.0), jnp.asarray(1e-3), False)
+
+
+def _channels(img):
+    return img[..., None] if img.ndim == 2 else img
+
+
+def image_gradients(img):
+    """Central-difference gradients (∂x, ∂y) of an (H, W, C) image, one-sided at the borders."""
+    gx = jnp.gradient(img, axis=1)
+    gy = jnp.gradient(img, axis=0)
+    return gx, gy
+
+
+def warp_bilinear(img, flow):
+    """img(x + w) for (H, W, C) img and (H, W, 2) flow, coordinates clamped; also the in-image mask."""
+    h, w = img.shape[:2]
+    gy, gx = jnp.meshgrid(jnp.arange(h, dtype=flow.dtype), jnp.arange(w, dtype=flow.dtype), indexing="ij")
+    x = gx + flow[..., 0]
+    y = gy + flow[..., 1]
+    inside = (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
+    x = jnp.clip(x, 0, w - 1)
+    y = jnp.clip(y, 0, h - 1)
+    x0 = jnp.clip(jnp.floor(x), 0, w - 2).astype(jnp.int32)
+    y0 = jnp.clip(jnp.floor(y), 0, h - 2).astype(jnp.int32)
+    fx = (x - x0)[..., None]
+    fy = (y - y0)[..., None]
+    top = img[y0, x0] * (1 - fx) + img[y0, x0 + 1] * fx
+    bottom = img[y0 + 1, x0] * (1 - fx) + img[y0 + 1, x0 + 1] * fx
+    return top * (1 - fy) + bottom * fy, inside
+
+
+def local_flow_energy(flow, img1, img2, params: FlowEnergyParams, data_weight=None, region=None):
+    """Per-pixel energy density e(x) (H, W) of eq. 6 (data + α · smoothness); its sum is E.
+
+    Args:
+        flow: (H, W, 2) flow w = (u, v) from img1 to img2, pixels.
+        img1, img2: (H, W) or (H, W, C) images on the 0-255 scale.
+        params: α, γ, ε and the smoothness type.
+        data_weight: (H, W) r(x) ∈ [0, 1] (default 1).
+        region: (H, W) bool Ω1 (default: the whole image, plain Brox flow).
+    """
+    img1, img2 = _channels(img1).astype(flow.dtype), _channels(img2).astype(flow.dtype)
+    h, w = img1.shape[:2]
+    r = jnp.ones((h, w), flow.dtype) if data_weight is None else data_weight.astype(flow.dtype)
+    omega = jnp.ones((h, w), bool) if region is None else region.astype(bool)
+    eps2 = params.epsilon**2
+    g1x, g1y = image_gradients(img1)
+    g2x, g2y = image_gradients(img2)
+    warped, inside = warp_bilinear(jnp.concatenate([img2, g2x, g2y], -1), flow)
+    c = img1.shape[-1]
+    i2w, g2xw, g2yw = warped[..., :c], warped[..., c : 2 * c], warped[..., 2 * c :]
+    s2 = jnp.sum((i2w - img1) ** 2, -1) + params.gamma * jnp.sum((g2xw - g1x) ** 2 + (g2yw - g1y) ** 2, -1)
+    data = jnp.where(omega & inside, r * jnp.sqrt(s2 + eps2), 0.0)
+    # Forward differences; a term exists where the pixel and its right/lower neighbour are both in Ω1.
+    du_x = jnp.zeros_like(flow).at[:, :-1].set(flow[:, 1:] - flow[:, :-1])
+    du_y = jnp.zeros_like(flow).at[:-1].set(flow[1:] - flow[:-1])
+    in_x = jnp.zeros((h, w), bool).at[:, :-1].set(omega[:, 1:] & omega[:, :-1])
+    in_y = jnp.zeros((h, w), bool).at[:-1].set(omega[1:] & omega[:-1])
+    grad_sq = jnp.sum(jnp.where(in_x[..., None], du_x**2, 0.0) + jnp.where(in_y[..., None], du_y**2, 0.0), -1)
+    smooth = jnp.sqrt(grad_sq + eps2) if params.robust_smoothness else grad_sq
+    smooth = jnp.where(omega, smooth, 0.0)
+    return data + params.alpha * smooth
+
+
+def flow_energy(flow, img1, img2, params: FlowEnergyParams, data_weight=None, region=None):
+    """E(u, v) of eq. 6 (scalar): the sum of `local_flow_energy`."""
+    return jnp.sum(local_flow_energy(flow, img1, img2, params, data_weight, region))
+
+
+def flow_confidence(local_energy, beta):
+    """Confidence c(x) = β / (1 + e(x)) of eq. 8 (β = 12 quadratic, 3 robust)."""
+    return beta / (1.0 + local_energy)
