@@ -62,9 +62,9 @@ class RenderOutput(eqx.Module):
 
 
 def _project_vertices(mesh: Mesh, camera: Camera, model: KinematicModel, T_world_root, theta):
-    """Camera-frame vertices (V, 3) and ideal pixels (V, 2) (distortion is not rendered)."""
-    T_parts = part_transforms(model, T_world_root, theta)
-    T_cam_parts = camera.T_cam_world @ T_parts
+    """Camera-frame vertices (V, 3), ideal pixels (V, 2) (distortion is not rendered) and the
+    part poses T_cam_part (P, 4, 4)."""
+    T_cam_parts = camera.T_cam_world @ part_transforms(model, T_world_root, theta)
     T = T_cam_parts[0] if model.num_parts == 1 else T_cam_parts[mesh.vertex_part]
     v = mesh.vertices
     p_cam = jnp.stack(
@@ -75,7 +75,7 @@ def _project_vertices(mesh: Mesh, camera: Camera, model: KinematicModel, T_world
     K = camera.K
     x, y = p_cam[:, 0] / safe_z, p_cam[:, 1] / safe_z
     px = jnp.stack([K[0, 0] * x + K[0, 1] * y + K[0, 2], K[1, 1] * y + K[1, 2]], -1)
-    return p_cam, px
+    return p_cam, px, T_cam_parts
 
 
 def _face_boxes(px_f, valid, width, height):
@@ -147,7 +147,7 @@ def render(
     if plan is None:
         # Without a plan every face would need a full-image patch: F x H x W candidates.
         raise ValueError("render needs a RasterPlan: plan_raster(face_extents(...)) or use Renderer")
-    p_cam, px = _project_vertices(mesh, camera, model, T_world_root, theta)
+    p_cam, px, T_cam_parts = _project_vertices(mesh, camera, model, T_world_root, theta)
     px_f = px[mesh.faces]  # (F, 3, 2)
     z_f = p_cam[mesh.faces, 2]  # (F, 3)
     in_front = jnp.all(z_f > plan.near, axis=1)
@@ -192,7 +192,7 @@ def render(
     xy = pixels_to_normalized(camera, jnp.stack([gx, gy], -1))
     z = jnp.where(covered, depth, 0.0)
     pix_cam = jnp.stack([xy[..., 0] * z, xy[..., 1] * z, z], -1)
-    T_part_cam = se3_inverse(camera.T_cam_world @ part_transforms(model, T_world_root, theta))  # (P, 4, 4)
+    T_part_cam = se3_inverse(T_cam_parts)  # (P, 4, 4)
     p_model = jnp.zeros_like(pix_cam)
     for p in range(model.num_parts):  # few parts: a select per part beats a per-pixel 4x4 gather
         T = T_part_cam[p]
@@ -220,7 +220,7 @@ def face_extents(mesh: Mesh, camera: Camera, T_world_root, theta=None, model=Non
     """Host helper: on-screen pixel extent of every face (0 if off-screen or culled), for planning."""
     model = rigid_model(mesh.vertices.dtype) if model is None else model
     theta = jnp.zeros((model.num_joints,), mesh.vertices.dtype) if theta is None else theta
-    p_cam, px = _project_vertices(mesh, camera, model, jnp.asarray(T_world_root, mesh.vertices.dtype), theta)
+    p_cam, px, _ = _project_vertices(mesh, camera, model, jnp.asarray(T_world_root, mesh.vertices.dtype), theta)
     valid = jnp.all(p_cam[mesh.faces, 2] > 0, axis=1)
     if cull_backfaces:
         valid = valid & _front_facing(px[mesh.faces])

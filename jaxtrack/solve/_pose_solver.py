@@ -273,7 +273,8 @@ def estimate_pose(
         raise ValueError(f"T_init must have shape (4, 4), got {T_init.shape}")
     if theta_init is not None and np.shape(theta_init) != (model.num_joints,):
         raise ValueError(f"theta_init must have shape ({model.num_joints},), got {np.shape(theta_init)}")
-    status = PoseStatus(int(input_status(model, corr, jnp.asarray(T_init), jnp.zeros(model.num_joints) if theta_init is None else jnp.asarray(theta_init))))
+    theta = jnp.zeros(model.num_joints) if theta_init is None else jnp.asarray(theta_init)
+    status = PoseStatus(int(input_status(model, corr, jnp.asarray(T_init), theta)))
     if status == PoseStatus.INVALID_INPUT:
         raise ValueError(
             "invalid pose-solver input: a weighted correspondence has a non-finite line or point, a weight "

@@ -195,11 +195,9 @@ def project_model_points(scene: PoseScene, T_world_root, theta, noise_px: float 
 
 def perturb_pose(rng: np.random.Generator, T: np.ndarray, max_angle: float, max_translation: float) -> np.ndarray:
     """T with a random rotation of ≤ max_angle (rad) and translation of ≤ max_translation (mm) applied."""
-    D = np.eye(4)
-    D[:3, :3] = random_rotation(rng, max_angle)
+    R = random_rotation(rng, max_angle)
     direction = rng.normal(size=3)
-    D[:3, 3] = direction / np.linalg.norm(direction) * rng.uniform(0, max_translation)
-    out = D @ T
-    out[:3, 3] = T[:3, 3] + D[:3, 3]
-    out[:3, :3] = D[:3, :3] @ T[:3, :3]
+    out = np.array(T, np.float64)
+    out[:3, :3] = R @ out[:3, :3]  # rotate about the object's own position, then shift it
+    out[:3, 3] += direction / np.linalg.norm(direction) * rng.uniform(0, max_translation)
     return out

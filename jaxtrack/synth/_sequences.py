@@ -154,24 +154,21 @@ def object_trajectory(cfg: SynthConfig, rng: np.random.Generator) -> tuple[np.nd
 
 
 def _occluder_masks(cfg, rng, n):
-    """Moving bars/discs that cross the image centre: (N, H, W) bool and their colours."""
-    masks = np.zeros((n, cfg.height, cfg.width), bool)
-    colours = []
+    """Moving bars/discs that cross the image: masks (num_occluders, N, H, W) bool and RGB colours."""
+    masks = np.zeros((cfg.occluders, n, cfg.height, cfg.width), bool)
+    colours = rng.uniform(20, 235, size=(cfg.occluders, 3))
     yy, xx = np.mgrid[0 : cfg.height, 0 : cfg.width]
-    for _ in range(cfg.occluders):
+    for o in range(cfg.occluders):
         start = rng.uniform([0, 0], [cfg.width, cfg.height])
         end = np.array([cfg.width, cfg.height]) - start
         radius = rng.uniform(0.06, 0.12) * cfg.width
-        colours.append(rng.uniform(20, 235, size=3))
         disc = rng.random() < 0.5
         for k in range(n):
             c = start + (end - start) * k / max(n - 1, 1)
             if disc:
-                m = (xx - c[0]) ** 2 + (yy - c[1]) ** 2 < radius**2
+                masks[o, k] = (xx - c[0]) ** 2 + (yy - c[1]) ** 2 < radius**2
             else:
-                m = (np.abs(xx - c[0]) < radius * 0.4) & (np.abs(yy - c[1]) < radius * 2.0)
-            masks[k] |= m
-        colours[-1] = (colours[-1], disc)
+                masks[o, k] = (np.abs(xx - c[0]) < radius * 0.4) & (np.abs(yy - c[1]) < radius * 2.0)
     return masks, colours
 
 
@@ -205,8 +202,8 @@ def render_sequence(cfg: SynthConfig, progress=None):
             img = background_plane(bg, cfg.background_colour, K, T_cam[k], cfg.width, cfg.height)
             hit = face >= 0
             img[hit] = caster.shade(face, pts, T_co)[hit]
-            for (col, _), m in zip(occ_colours, [occ[k]] * len(occ_colours)):
-                img[m] = col
+            for o in range(cfg.occluders):
+                img[occ[o, k]] = occ_colours[o]
             if cfg.noise_sigma > 0:
                 img = img + rng.normal(scale=cfg.noise_sigma, size=img.shape)
             if cfg.salt_fraction > 0:
@@ -215,7 +212,7 @@ def render_sequence(cfg: SynthConfig, progress=None):
             imgs.append(np.clip(np.round(img), 0, 255).astype(np.uint8))
             poses.append(T_co)
             objm.append(hit)
-            occm.append(occ[k] & hit)
+            occm.append(occ[:, k].any(axis=0) & hit)
             if progress is not None:
                 progress.update(1)
         out["images"].append(np.stack(imgs))
