@@ -1,0 +1,175 @@
+"""Host-side entry points built on the jitted flow solver: bidirectional flow and the ROI mode."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._consistency import forward_backward_consistency
+from ._energy import FlowEnergyParams
+from ._solver import FlowConfig, FlowResult, check_flow_inputs, default_beta, flow_core
+
+# Side lengths of the static crop classes of the ROI mode (≈ √2 apart, multiples of 16).
+ROI_SIZES = (32, 48, 64, 96, 128, 176, 256, 352, 512, 704, 1024, 1408, 2048)
+
+
+class BidirectionalFlow(eqx.Module):
+    """Forward and backward flow with their forward-backward consistency masks.
+
+    Attributes:
+        forward: `FlowResult` frame 1 → frame 2.
+        backward: `FlowResult` frame 2 → frame 1.
+        consistent_forward: (H, W) bool, forward flow passes the round-trip test.
+        consistent_backward: (H, W) bool, the same for the backward flow.
+    """
+
+    forward: FlowResult
+    backward: FlowResult
+    consistent_forward: jax.Array
+    consistent_backward: jax.Array
+
+
+@eqx.filter_jit
+def _bidirectional_jit(img1, img2, params, config, r1, r2, om1, om2, beta, dtype, a1, a2):
+    # Both directions in one vmapped solve: the same compiled program, twice the batch.
+    imgs_a = jnp.stack([img1, img2])
+    imgs_b = jnp.stack([img2, img1])
+    res = jax.vmap(lambda a, b, r, om: flow_core(a, b, params, config, r, om, None, beta, dtype))(
+        imgs_a, imgs_b, jnp.stack([r1, r2]), jnp.stack([om1, om2])
+    )
+    fw = jax.tree.map(lambda x: x[0], res)
+    bw = jax.tree.map(lambda x: x[1], res)
+    return BidirectionalFlow(
+        fw, bw, forward_backward_consistency(fw.flow, bw.flow, a1, a2), forward_backward_consistency(bw.flow, fw.flow, a1, a2)
+    )
+
+
+def compute_flow_bidirectional(
+    img1,
+    img2,
+    params: FlowEnergyParams,
+    config: FlowConfig = FlowConfig(),
+    data_weight=None,
+    region=None,
+    region2=None,
+    beta=None,
+    a1=0.01,
+    a2=0.5,
+    dtype=jnp.float32,
+) -> BidirectionalFlow:
+    """Flow 1 → 2 and 2 → 1 plus the forward-backward consistency masks (Sundaram et al. 2010).
+
+    Args:
+        img1, img2: (H, W) or (H, W, C) frames, 0-255 scale.
+        data_weight: optional (H, W) r(x) of frame 1 (the backward flow uses r = 1).
+        region, region2: optional (H, W) bool Ω1 in frame 1 and in frame 2 (default: whole image).
+        a1, a2: consistency tolerances.
+    """
+    check_flow_inputs(img1, img2, data_weight, region)
+    check_flow_inputs(img1, img2, None, region2)
+    h, w = jnp.shape(img1)[:2]
+    ones, full = jnp.ones((h, w), dtype), jnp.ones((h, w), bool)
+    r1 = ones if data_weight is None else jnp.asarray(data_weight, dtype)
+    om1 = full if region is None else jnp.asarray(region, bool)
+    om2 = full if region2 is None else jnp.asarray(region2, bool)
+    beta = default_beta(params) if beta is None else beta
+    return _bidirectional_jit(
+        jnp.asarray(img1), jnp.asarray(img2), params, config, r1, ones, om1, om2, jnp.asarray(beta, dtype), dtype, a1, a2
+    )
+
+
+def roi_crop(region, margin: int, sizes=ROI_SIZES) -> tuple[int, int, int, int]:
+    """Crop (y0, x0, height, width) of a static size class around the region's bounding box.
+
+    The box is grown by `margin` pixels on every side and each side is rounded up to the next class
+    in `sizes` (capped at the image side), so that a moving object changes the crop's size, and
+    with it the compiled program, only when it crosses a class boundary.
+
+    Raises:
+        ValueError: when the region is empty.
+    """
+    reg = np.asarray(region, bool)
+    if reg.ndim != 2:
+        raise ValueError(f"roi_crop: region must be (H, W), got shape {reg.shape}")
+    rows, cols = np.flatnonzero(reg.any(1)), np.flatnonzero(reg.any(0))
+    if rows.size == 0:
+        raise ValueError("roi_crop: the region is empty; there is nothing to compute flow for")
+    H, W = reg.shape
+
+    def side(lo, hi, n):
+        need = hi - lo + 1 + 2 * margin
+        size = next((s for s in sizes if s >= need), need)
+        size = min(size, n)
+        start = int(np.clip((lo + hi + 1) // 2 - size // 2, 0, n - size))
+        return start, size
+
+    y0, ch = side(rows[0], rows[-1], H)
+    x0, cw = side(cols[0], cols[-1], W)
+    return y0, x0, ch, cw
+
+
+@eqx.debug.assert_max_traces(max_traces=None)  # counts traces (`eqx.debug.get_num_traces`), never fails
+def _roi_body(img1, img2, params, config, r, om, init, offset, beta, dtype, crop_shape):
+    ch, cw = crop_shape
+    y0, x0 = offset[0], offset[1]
+
+    def crop(a):
+        zero = jnp.zeros((), y0.dtype)
+        return jax.lax.dynamic_slice(a, (y0, x0) + (zero,) * (a.ndim - 2), (ch, cw) + a.shape[2:])
+
+    res = flow_core(crop(img1), crop(img2), params, config, crop(r), crop(om), None if init is None else crop(init), beta, dtype)
+
+    def paste(full_like, part):
+        zero = jnp.zeros((), y0.dtype)
+        return jax.lax.dynamic_update_slice(full_like, part, (y0, x0) + (zero,) * (part.ndim - 2))
+
+    h, w = img1.shape[:2]
+    return FlowResult(
+        paste(jnp.zeros((h, w, 2), res.flow.dtype), res.flow),
+        paste(jnp.zeros((h, w), res.local_energy.dtype), res.local_energy),
+        paste(jnp.zeros((h, w), res.confidence.dtype), res.confidence),
+        paste(jnp.zeros((h, w), bool), res.region),
+    )
+
+
+_roi_jit = eqx.filter_jit(_roi_body)
+
+
+def compute_flow_roi(
+    img1,
+    img2,
+    params: FlowEnergyParams,
+    region,
+    config: FlowConfig = FlowConfig(),
+    data_weight=None,
+    init_flow=None,
+    margin: int = 16,
+    beta=None,
+    dtype=jnp.float32,
+) -> tuple[FlowResult, tuple[int, int, int, int]]:
+    """Flow inside Ω1 computed on a padded crop around it (the tracker's mode).
+
+    Only the crop is solved; it has one of a few static sizes (`ROI_SIZES`), so a tracked object
+    compiles once per size class, not once per frame. Results are pasted into full-frame arrays
+    (zero outside the crop and outside Ω1).
+
+    Args:
+        region: (H, W) bool Ω1 (required, non-empty).
+        margin: pixels of context around the region's bounding box.
+
+    Returns:
+        (`FlowResult` of full-frame arrays, crop (y0, x0, height, width)).
+    """
+    check_flow_inputs(img1, img2, data_weight, region, init_flow)
+    box = roi_crop(region, margin)
+    h, w = jnp.shape(img1)[:2]
+    r = jnp.ones((h, w), dtype) if data_weight is None else jnp.asarray(data_weight, dtype)
+    beta = default_beta(params) if beta is None else beta
+    offset = jnp.asarray(box[:2], jnp.int32)
+    res = _roi_jit(
+        jnp.asarray(img1), jnp.asarray(img2), params, config, r, jnp.asarray(region, bool),
+        None if init_flow is None else jnp.asarray(init_flow, dtype), offset, jnp.asarray(beta, dtype), dtype, box[2:],
+    )
+    return res, box

@@ -1,0 +1,106 @@
+"""Image pyramids for coarse-to-fine flow: separable Gaussian blur and bilinear resampling.
+
+Everything here works on (H, W, C) arrays with shapes known at trace time; the level shapes are
+computed on the host (`pyramid_shapes`) so that each level is a static-shape computation.
+Resampling is written as gathers along one axis at a time (cheap on XLA:CPU), not as the dense
+interpolation matrices of `jax.image.resize`, which cost a matrix product per level.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax.numpy as jnp
+import numpy as np
+
+
+def pyramid_shapes(height: int, width: int, eta: float, min_size: int, max_levels: int) -> list[tuple[int, int]]:
+    """Level shapes, finest first: (H η^k, W η^k) rounded to even, while the short side is ≥ min_size.
+
+    Even sides let the SOR solver split every level into its four parity sub-grids; H and W
+    themselves must be even.
+
+    Args:
+        height, width: the finest level's shape.
+        eta: downsampling factor per level, 0 < η < 1 (Brox et al. use 0.9-0.95).
+        min_size: the coarsest level's short side is at least this (or the image's, if smaller).
+        max_levels: cap on the number of levels.
+    """
+    if not 0.0 < eta < 1.0:
+        raise ValueError(f"pyramid factor eta must lie in (0, 1), got {eta}")
+    if height % 2 or width % 2:
+        raise ValueError(f"pyramid_shapes needs even sides, got {height}x{width}")
+    shapes = [(int(height), int(width))]
+    k = 1
+    while len(shapes) < max_levels:
+        h, w = 2 * round(height * eta**k / 2), 2 * round(width * eta**k / 2)
+        if min(h, w) < min_size:
+            break
+        if (h, w) != shapes[-1]:
+            shapes.append((h, w))
+        k += 1
+    return shapes
+
+
+def gaussian_kernel(sigma: float) -> np.ndarray:
+    """Normalised 1-D Gaussian taps, radius ceil(3σ) (a host constant; σ is static)."""
+    radius = max(1, int(math.ceil(3.0 * sigma)))
+    x = np.arange(-radius, radius + 1, dtype=np.float64)
+    k = np.exp(-0.5 * (x / sigma) ** 2)
+    return k / k.sum()
+
+
+def _convolve_axis(img, taps: np.ndarray, axis: int):
+    """Correlate `img` with symmetric `taps` along `axis`, replicating the border pixels."""
+    r = len(taps) // 2
+    pad = [(0, 0)] * img.ndim
+    pad[axis] = (r, r)
+    padded = jnp.pad(img, pad, mode="edge")
+    n = img.shape[axis]
+    out = 0.0
+    for i, t in enumerate(taps):
+        out = out + float(t) * jnp.take(padded, jnp.arange(i, i + n), axis=axis)
+    return out
+
+
+def gaussian_blur(img, sigma: float):
+    """Separable Gaussian blur of an (H, W, C) image (σ in pixels, static); σ ≤ 0 returns `img`."""
+    if sigma <= 0:
+        return img
+    taps = gaussian_kernel(float(sigma))
+    return _convolve_axis(_convolve_axis(img, taps, 0), taps, 1)
+
+
+def _resample_axis(img, n_out: int, axis: int):
+    """Linear resampling along `axis` to n_out samples, pixel centres aligned, border clamped."""
+    n_in = img.shape[axis]
+    if n_in == n_out:
+        return img
+    src = (np.arange(n_out, dtype=np.float64) + 0.5) * (n_in / n_out) - 0.5
+    src = np.clip(src, 0.0, n_in - 1)
+    i0 = np.minimum(np.floor(src).astype(np.int32), max(n_in - 2, 0))
+    i1 = np.minimum(i0 + 1, n_in - 1)
+    f = (src - i0).astype(np.float32)
+    shape = [1] * img.ndim
+    shape[axis] = n_out
+    f = jnp.asarray(f, img.dtype).reshape(shape)
+    return jnp.take(img, jnp.asarray(i0), axis=axis) * (1 - f) + jnp.take(img, jnp.asarray(i1), axis=axis) * f
+
+
+def resize_bilinear(img, shape: tuple[int, int]):
+    """Bilinear resampling of an (H, W, ...) array to `shape` = (H', W') (static), centres aligned."""
+    return _resample_axis(_resample_axis(img, int(shape[0]), 0), int(shape[1]), 1)
+
+
+def downsample(img, shape: tuple[int, int], eta: float, sigma0: float = 0.6):
+    """One pyramid step: blur with σ = σ0 sqrt(η⁻² − 1) (anti-aliasing), then resample to `shape`."""
+    sigma = sigma0 * math.sqrt(max(1.0 / eta**2 - 1.0, 0.0))
+    return resize_bilinear(gaussian_blur(img, sigma), shape)
+
+
+def upsample_flow(flow, shape: tuple[int, int]):
+    """Resample an (h, w, 2) flow to `shape` and rescale its components to the finer pixel units."""
+    h, w = flow.shape[:2]
+    out = resize_bilinear(flow, shape)
+    scale = jnp.asarray([shape[1] / w, shape[0] / h], flow.dtype)
+    return out * scale

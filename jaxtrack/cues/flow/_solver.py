@@ -1,0 +1,487 @@
+"""Minimiser of the flow energy of eq. 6: coarse-to-fine warping with two nested fixed points.
+
+Following Brox, Bruhn, Papenberg and Weickert (ECCV 2004), Section 3:
+
+* outer fixed point (warping): at each pyramid level the flow w is held fixed, I2 and ∇I2 are warped
+  by w and the data term is linearised in the increment dw (the motion tensor J, a 3x3 quadratic form
+  s²(dw) = [dw, 1]ᵀ J [dw, 1] per pixel, summed over channels);
+* inner fixed point (lagged nonlinearity): the robust weights Ψ'(s²) and Ψ2'(|∇(w + dw)|²) are frozen,
+  which leaves a sparse linear system in dw (eq. 7 of the tracking paper's Euler-Lagrange equations);
+* linear solver: coupled point SOR in red-black order. Each pixel solves its own 2x2 block for
+  (du, dv) from its four neighbours; all pixels of one colour update at once, which is the form that
+  vectorises on XLA:CPU.
+
+Pyramid levels are unrolled in Python (their shapes differ); every loop inside a level is a
+`lax.fori_loop` with a static trip count, so one image size compiles once.
+
+The smoothness discretisation is exactly the one of `local_flow_energy` (forward differences, a
+Ψ2' per pixel shared by its right and lower edges, edges only between two pixels of Ω1), so the
+lagged-diffusivity iteration is a fixed point of that discrete energy, and `linearised_flow_energy`
+gives the energy the solver actually decreases at the finest level.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._energy import (
+    FlowEnergyParams,
+    flow_energy,
+    image_gradients,
+    local_flow_energy,
+    sample_bilinear,
+    warp_bilinear,
+)
+from ._pyramid import downsample, gaussian_blur, pyramid_shapes, upsample_flow
+from ._quarters import from_quarters, im, ip, km, kp, q_down, q_left, q_right, q_up, to_quarters
+
+
+class FlowConfig(eqx.Module):
+    """Settings of the minimiser; all static (they fix shapes and loop counts).
+
+    Attributes:
+        eta: pyramid downsampling factor η per level (Brox et al. 2004: 0.95).
+        min_size: the coarsest level's short side in pixels.
+        max_levels: cap on the number of pyramid levels.
+        presmooth_sigma: Gaussian σ (pixels) applied to both images before everything else; the
+            energy is that of the smoothed images.
+        warps: outer fixed-point iterations (warps) per level.
+        lagged: inner fixed-point iterations (robust weights frozen) per warp.
+        sor_iters: red-black SOR sweeps per inner iteration.
+        omega: SOR relaxation factor, 0 < ω < 2.
+        finest_warps: extra warps at the finest level (0: the same as every level).
+    """
+
+    eta: float = eqx.field(static=True, default=0.9)
+    min_size: int = eqx.field(static=True, default=16)
+    max_levels: int = eqx.field(static=True, default=100)
+    presmooth_sigma: float = eqx.field(static=True, default=0.8)
+    warps: int = eqx.field(static=True, default=1)
+    lagged: int = eqx.field(static=True, default=3)
+    sor_iters: int = eqx.field(static=True, default=10)
+    omega: float = eqx.field(static=True, default=1.8)
+    finest_warps: int = eqx.field(static=True, default=0)
+
+    def __check_init__(self):
+        if not 0.0 < self.eta < 1.0:
+            raise ValueError(f"FlowConfig.eta must lie in (0, 1), got {self.eta}")
+        if not 0.0 < self.omega < 2.0:
+            raise ValueError(f"FlowConfig.omega must lie in (0, 2), got {self.omega}")
+        for name in ("min_size", "max_levels", "warps", "lagged", "sor_iters"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"FlowConfig.{name} must be ≥ 1, got {getattr(self, name)}")
+
+
+class FlowResult(eqx.Module):
+    """Output of `compute_flow`.
+
+    Attributes:
+        flow: (H, W, 2) flow (u, v) in pixels from frame 1 to frame 2; zero outside the region Ω1.
+        local_energy: (H, W) energy density e(x) of eq. 6 at the solution (0 outside Ω1).
+        confidence: (H, W) c(x) = β / (1 + e(x)) of eq. 8 inside Ω1, 0 outside.
+        region: (H, W) bool Ω1 as used.
+    """
+
+    flow: jax.Array
+    local_energy: jax.Array
+    confidence: jax.Array
+    region: jax.Array
+
+
+class MotionTensor(NamedTuple):
+    """Linearised data term at a fixed flow: s²(du, dv) = [du dv 1] J [du dv 1]ᵀ, per pixel.
+
+    Also carries the data weight ρ = r · Ω1 · [warped position inside the image]. The fields have
+    the layout of the pixels they were computed for ((H, W), or (4, H/2, W/2) in the solver).
+    """
+
+    j11: jax.Array
+    j12: jax.Array
+    j22: jax.Array
+    j13: jax.Array
+    j23: jax.Array
+    j33: jax.Array
+    rho: jax.Array
+
+
+def default_beta(params: FlowEnergyParams) -> float:
+    """β of eq. 8: 3 for robust smoothness, 12 for quadratic."""
+    return 3.0 if params.robust_smoothness else 12.0
+
+
+def prepare_image(img, sigma: float, dtype=jnp.float32):
+    """(H, W) or (H, W, C) image → float (H, W, C), pre-smoothed with Gaussian σ (static)."""
+    img = jnp.asarray(img)
+    img = img[..., None] if img.ndim == 2 else img
+    return gaussian_blur(img.astype(dtype), sigma)
+
+
+def derivative_stack(img2):
+    """[I2, ∂x I2, ∂y I2, ∂xx I2, ∂xy I2, ∂yy I2] on I2's grid (central differences), (H, W, 6C)."""
+    g2x, g2y = image_gradients(img2)
+    g2xx, g2xy = image_gradients(g2x)
+    g2yx, g2yy = image_gradients(g2y)
+    return jnp.concatenate([img2, g2x, g2y, g2xx, 0.5 * (g2xy + g2yx), g2yy], -1)
+
+
+def _tensor(warped, inside, i1_stack, gamma, data_weight, region) -> MotionTensor:
+    """Motion tensor from the warped derivative stack (..., 6C) and [I1, ∂x I1, ∂y I1] (..., 3C)."""
+    c = i1_stack.shape[-1] // 3
+    i2, ix, iy, ixx, ixy, iyy = (warped[..., k * c : (k + 1) * c] for k in range(6))
+    i1, g1x, g1y = (i1_stack[..., k * c : (k + 1) * c] for k in range(3))
+    iz, ixz, iyz = i2 - i1, ix - g1x, iy - g1y
+    s = lambda a: jnp.sum(a, -1)  # noqa: E731 - sum over colour channels
+    j11 = s(ix * ix) + gamma * s(ixx * ixx + ixy * ixy)
+    j12 = s(ix * iy) + gamma * s(ixx * ixy + ixy * iyy)
+    j22 = s(iy * iy) + gamma * s(ixy * ixy + iyy * iyy)
+    j13 = s(ix * iz) + gamma * s(ixx * ixz + ixy * iyz)
+    j23 = s(iy * iz) + gamma * s(ixy * ixz + iyy * iyz)
+    j33 = s(iz * iz) + gamma * s(ixz * ixz + iyz * iyz)
+    rho = jnp.where(region & inside, data_weight, 0.0).astype(i1_stack.dtype)
+    return MotionTensor(j11, j12, j22, j13, j23, j33, rho)
+
+
+def motion_tensor(flow, img1, img2, gamma, data_weight, region) -> MotionTensor:
+    """Linearise the data term of eq. 6 around `flow` (the outer fixed point's linearisation).
+
+    I2, ∂xI2, ∂yI2 and the second derivatives are taken on I2's grid (central differences) and then
+    warped bilinearly by `flow`; the increment's coefficients are the warped first derivatives (grey
+    value constancy) and the warped Hessian (gradient constancy).
+
+    Args:
+        flow: (H, W, 2) current flow.
+        img1, img2: (H, W, C) float images.
+        gamma: γ (scalar array).
+        data_weight: (H, W) r(x); region: (H, W) bool Ω1.
+
+    Returns:
+        `MotionTensor` with (H, W) fields.
+    """
+    g1x, g1y = image_gradients(img1)
+    warped, inside = warp_bilinear(derivative_stack(img2), flow)
+    return _tensor(warped, inside, jnp.concatenate([img1, g1x, g1y], -1), gamma, data_weight, region)
+
+
+def _data_s2(J: MotionTensor, du, dv):
+    return J.j11 * du * du + 2 * J.j12 * du * dv + J.j22 * dv * dv + 2 * J.j13 * du + 2 * J.j23 * dv + J.j33
+
+
+# Full-layout neighbour values with zero fill (the matching edge weights are zero there).
+def _right(a):
+    return jnp.pad(a[:, 1:], ((0, 0), (0, 1)))
+
+
+def _down(a):
+    return jnp.pad(a[1:], ((0, 1), (0, 0)))
+
+
+def _smoothness_s2(U, V, in_x, in_y, right=_right, down=_down):
+    """|∇w|² per pixel with forward differences on Ω1-internal edges (as in `local_flow_energy`)."""
+    dux, dvx = right(U) - U, right(V) - V
+    duy, dvy = down(U) - U, down(V) - V
+    return jnp.where(in_x, dux * dux + dvx * dvx, 0.0) + jnp.where(in_y, duy * duy + dvy * dvy, 0.0)
+
+
+def linearised_flow_energy(dflow, flow, img1, img2, params: FlowEnergyParams, data_weight=None, region=None):
+    """Eq. 6 with the data term linearised around `flow` (what one warp of the solver minimises).
+
+    E_lin(dw) = Σ ρ Ψ(s²(dw)) + α Σ Ψ2(|∇(w + dw)|²), s² from `motion_tensor`. At dw = 0 it equals
+    `flow_energy(flow, ...)`.
+
+    Args:
+        dflow, flow: (H, W, 2) increment and the linearisation point.
+        img1, img2: (H, W) or (H, W, C) float images (already pre-smoothed, if the solver smooths).
+    """
+    img1 = img1[..., None] if img1.ndim == 2 else img1
+    img2 = img2[..., None] if img2.ndim == 2 else img2
+    h, w = img1.shape[:2]
+    r = jnp.ones((h, w), flow.dtype) if data_weight is None else jnp.asarray(data_weight, flow.dtype)
+    omega = jnp.ones((h, w), bool) if region is None else jnp.asarray(region, bool)
+    J = motion_tensor(flow, img1.astype(flow.dtype), img2.astype(flow.dtype), params.gamma, r, omega)
+    eps2 = params.epsilon**2
+    data = J.rho * jnp.sqrt(jnp.maximum(_data_s2(J, dflow[..., 0], dflow[..., 1]), 0.0) + eps2)
+    in_x, in_y = omega & _right(omega), omega & _down(omega)
+    W = flow + dflow
+    g = _smoothness_s2(W[..., 0], W[..., 1], in_x, in_y)
+    smooth = jnp.sqrt(g + eps2) if params.robust_smoothness else g
+    return jnp.sum(data) + params.alpha * jnp.sum(jnp.where(omega, smooth, 0.0))
+
+
+def _solve_increment(J: MotionTensor, u, v, region, params: FlowEnergyParams, config: FlowConfig):
+    """Minimise the linearised energy over (du, dv): lagged nonlinearity + red-black coupled SOR.
+
+    All fields are in the parity layout (4, H/2, W/2) of `_quarters`, so a half-sweep updates the
+    red (A, D) or black (B, C) sub-grids only, with no masked select.
+
+    Returns:
+        (du, dv), each (4, H/2, W/2).
+    """
+    dtype = u.dtype
+    eps2 = params.epsilon**2
+    alpha = params.alpha
+    in_x, in_y = region & q_right(region), region & q_down(region)
+    om = jnp.asarray(config.omega, dtype)
+
+    def inner(_, carry):
+        du, dv = carry
+        # Frozen robust weights (the lagged nonlinearity): Ψ'(s²) = 1 / (2 sqrt(s² + ε²)).
+        s2 = jnp.maximum(_data_s2(J, du, dv), 0.0)
+        d = J.rho * 0.5 / jnp.sqrt(s2 + eps2)
+        if params.robust_smoothness:
+            psi = 0.5 / jnp.sqrt(_smoothness_s2(u + du, v + dv, in_x, in_y, q_right, q_down) + eps2)
+        else:
+            psi = jnp.ones_like(u)
+        a_e = jnp.where(in_x, alpha * psi, 0.0)  # weight of edge (p, p+x)
+        a_s = jnp.where(in_y, alpha * psi, 0.0)  # weight of edge (p, p+y)
+        a_w, a_n = q_left(a_e), q_up(a_s)
+        a_sum = a_e + a_w + a_s + a_n
+        a11 = d * J.j11 + a_sum
+        a12 = d * J.j12
+        a22 = d * J.j22 + a_sum
+        det = a11 * a22 - a12 * a12
+        # Pixels without any term (outside Ω1) get a zero block inverse and keep du = 0.
+        ok = det > 1e-9 * (a11 * a22 + 1e-30)
+        inv_det = jnp.where(ok, 1.0 / jnp.where(ok, det, 1.0), 0.0)
+        # The 2x2 block inverse per pixel, and the constant part of the right-hand side:
+        # −ρΨ' J_{·3} + α div(ψ ∇w) at the base flow.
+        m11, m12, m22 = a22 * inv_det, -a12 * inv_det, a11 * inv_det
+        nb = lambda a: a_e * q_right(a) + a_w * q_left(a) + a_s * q_down(a) + a_n * q_up(a)  # noqa: E731
+        cu = -d * J.j13 + nb(u) - a_sum * u
+        cv = -d * J.j23 + nb(v) - a_sum * v
+        coef = [tuple(x[q] for x in (m11, m12, m22, cu, cv, a_e, a_w, a_s, a_n)) for q in range(4)]
+
+        def update(x_u, x_v, c, nbr_u, nbr_v):
+            m11, m12, m22, cu, cv, we, ww, ws, wn = c
+            bu = cu + we * nbr_u[0] + ww * nbr_u[1] + ws * nbr_u[2] + wn * nbr_u[3]
+            bv = cv + we * nbr_v[0] + ww * nbr_v[1] + ws * nbr_v[2] + wn * nbr_v[3]
+            return x_u + om * (m11 * bu + m12 * bv - x_u), x_v + om * (m12 * bu + m22 * bv - x_v)
+
+        # Neighbours (right, left, down, up) of each sub-grid in terms of the other colour's sub-grids.
+        def nbr_a(b, c):
+            return (b, km(b), c, im(c))
+
+        def nbr_d(b, c):
+            return (kp(c), c, ip(b), b)
+
+        def nbr_b(a, d):
+            return (kp(a), a, d, im(d))
+
+        def nbr_c(a, d):
+            return (d, km(d), ip(a), a)
+
+        def sweep(_, s):
+            (au, bu, cu_, du_), (av, bv, cv_, dv_) = s
+            au, av = update(au, av, coef[0], nbr_a(bu, cu_), nbr_a(bv, cv_))
+            du_, dv_ = update(du_, dv_, coef[3], nbr_d(bu, cu_), nbr_d(bv, cv_))
+            bu, bv = update(bu, bv, coef[1], nbr_b(au, du_), nbr_b(av, dv_))
+            cu_, cv_ = update(cu_, cv_, coef[2], nbr_c(au, du_), nbr_c(av, dv_))
+            return (au, bu, cu_, du_), (av, bv, cv_, dv_)
+
+        qu, qv = jax.lax.fori_loop(0, config.sor_iters, sweep, (tuple(du), tuple(dv)))
+        return jnp.stack(qu), jnp.stack(qv)
+
+    zero = jnp.zeros_like(u)
+    return jax.lax.fori_loop(0, config.lagged, inner, (zero, zero))
+
+
+def _level(flow, img1, img2, r, region, params, config: FlowConfig, warps: int):
+    """`warps` outer fixed-point iterations at one pyramid level (H, W even); returns (H, W, 2) flow.
+
+    Per-pixel fields live in the parity layout for the whole level; warping samples the full-layout
+    derivative stack of I2 directly at the parity-ordered positions, so no per-warp relayout is needed.
+    """
+    h, w = img1.shape[:2]
+    dtype = img1.dtype
+    stack2 = derivative_stack(img2)
+    g1x, g1y = image_gradients(img1)
+    i1q = to_quarters(jnp.concatenate([img1, g1x, g1y], -1))
+    rq, regq = to_quarters(r), to_quarters(region)
+    gy, gx = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+    xq, yq = to_quarters(jnp.asarray(gx, dtype)), to_quarters(jnp.asarray(gy, dtype))
+
+    def outer(_, fq):
+        warped, inside = sample_bilinear(stack2, xq + fq[..., 0], yq + fq[..., 1])
+        J = _tensor(warped, inside, i1q, params.gamma, rq, regq)
+        du, dv = _solve_increment(J, fq[..., 0], fq[..., 1], regq, params, config)
+        return fq + jnp.stack([du, dv], -1)
+
+    return from_quarters(jax.lax.fori_loop(0, warps, outer, to_quarters(flow)))
+
+
+def _compute_flow(img1, img2, params, config, data_weight, region, init_flow, record=False):
+    """Coarse-to-fine loop over the pyramid (H, W even). With `record`, also the energies per level."""
+    h, w = img1.shape[:2]
+    dtype = img1.dtype
+    shapes = pyramid_shapes(h, w, config.eta, min(config.min_size, h, w), config.max_levels)
+    i1s, i2s, rs, oms = [img1], [img2], [data_weight[..., None]], [region[..., None].astype(dtype)]
+    for shape in shapes[1:]:
+        i1s.append(downsample(i1s[-1], shape, config.eta))
+        i2s.append(downsample(i2s[-1], shape, config.eta))
+        rs.append(downsample(rs[-1], shape, config.eta))
+        oms.append(downsample(oms[-1], shape, config.eta))
+    ch, cw = shapes[-1]
+    flow = jnp.zeros((ch, cw, 2), dtype) if init_flow is None else upsample_flow(jnp.asarray(init_flow, dtype), (ch, cw))
+    energies = []
+    for k in range(len(shapes) - 1, -1, -1):
+        if flow.shape[:2] != shapes[k]:
+            flow = upsample_flow(flow, shapes[k])
+        # Level 0 uses Ω1 exactly; coarser levels keep pixels that are mostly inside.
+        om = region if k == 0 else oms[k][..., 0] > 0.5
+        warps = config.warps + (config.finest_warps if k == 0 else 0)
+        flow_in = flow
+        flow = _level(flow, i1s[k], i2s[k], rs[k][..., 0], om, params, config, warps)
+        if record:
+            e = [flow_energy(f, i1s[k], i2s[k], params, rs[k][..., 0], om) for f in (flow_in, flow)]
+            energies.append(jnp.stack(e))
+    flow = jnp.where(region[..., None], flow, 0.0)
+    if record:
+        return flow, jnp.stack(energies[::-1])
+    return flow
+
+
+def check_flow_inputs(img1, img2, data_weight=None, region=None, init_flow=None):
+    """Raise ValueError naming the argument when frames or optional fields have wrong shapes."""
+    img1, img2 = jnp.asarray(img1), jnp.asarray(img2)
+    if img1.ndim not in (2, 3) or img1.shape != img2.shape:
+        raise ValueError(
+            f"compute_flow: frames must be (H, W) or (H, W, C) of the same shape, got {img1.shape} and {img2.shape}"
+        )
+    if min(img1.shape[:2]) < 4:
+        raise ValueError(f"compute_flow: frames must be at least 4x4 pixels, got {img1.shape[:2]}")
+    hw = img1.shape[:2]
+    for name, a, extra in (("data_weight", data_weight, ()), ("region", region, ()), ("init_flow", init_flow, (2,))):
+        if a is not None and tuple(jnp.shape(a)) != hw + extra:
+            raise ValueError(f"compute_flow: {name} must have shape {hw + extra}, got {tuple(jnp.shape(a))}")
+
+
+def _pad_even(a, fill):
+    """Pad rows/columns at the bottom/right so both sides are even (edge-replicated or `fill`)."""
+    h, w = a.shape[:2]
+    pad = [(0, h % 2), (0, w % 2)] + [(0, 0)] * (a.ndim - 2)
+    if fill is None:
+        return jnp.pad(a, pad, mode="edge")
+    return jnp.pad(a, pad, constant_values=fill)
+
+
+def _prepared(img1, img2, config, data_weight, region, init_flow, dtype):
+    """Smoothed float frames, r clipped to [0, 1], Ω1 as bool, all padded to even sides."""
+    img1 = prepare_image(img1, config.presmooth_sigma, dtype)
+    img2 = prepare_image(img2, config.presmooth_sigma, dtype)
+    r = jnp.clip(jnp.asarray(data_weight, dtype), 0.0, 1.0)
+    om = jnp.asarray(region, bool)
+    init = None if init_flow is None else _pad_even(jnp.asarray(init_flow, dtype), None)
+    # Odd sides get one padding row/column outside Ω1 (the solver's parity layout needs even sides).
+    padded = (_pad_even(img1, None), _pad_even(img2, None), _pad_even(r, 0.0), _pad_even(om, False), init)
+    return img1, img2, r, om, padded
+
+
+def flow_core(img1, img2, params, config: FlowConfig, data_weight, region, init_flow, beta, dtype) -> FlowResult:
+    """The traceable body of `compute_flow` (no host checks; all optional inputs given as arrays).
+
+    Args:
+        img1, img2: (H, W) or (H, W, C) frames; data_weight (H, W) float; region (H, W) bool;
+        init_flow (H, W, 2) or None; beta scalar.
+    """
+    img1, img2, r, om, (p1, p2, pr, pom, init) = _prepared(img1, img2, config, data_weight, region, init_flow, dtype)
+    h, w = img1.shape[:2]
+    flow = _compute_flow(p1, p2, params, config, pr, pom, init)[:h, :w]
+    e = jnp.where(om, local_flow_energy(flow, img1, img2, params, r, om), 0.0)
+    conf = jnp.where(om, beta / (1.0 + e), 0.0)
+    return FlowResult(flow, e, conf, om)
+
+
+@eqx.debug.assert_max_traces(max_traces=None)  # counts traces (`eqx.debug.get_num_traces`), never fails
+def _compute_flow_body(img1, img2, params, config, data_weight, region, init_flow, beta, dtype):
+    h, w = img1.shape[:2]
+    r = jnp.ones((h, w), dtype) if data_weight is None else data_weight
+    om = jnp.ones((h, w), bool) if region is None else region
+    return flow_core(img1, img2, params, config, r, om, init_flow, beta, dtype)
+
+
+_compute_flow_jit = eqx.filter_jit(_compute_flow_body)
+
+
+@eqx.filter_jit
+def _level_energies_jit(img1, img2, params, config, data_weight, region, dtype):
+    _, _, _, _, (p1, p2, pr, pom, _) = _prepared(img1, img2, config, data_weight, region, None, dtype)
+    return _compute_flow(p1, p2, params, config, pr, pom, None, record=True)[1]
+
+
+@eqx.filter_jit
+def _refine_jit(flow, img1, img2, params, config, data_weight, region, dtype):
+    img1p, _, _, _, (p1, p2, pr, pom, init) = _prepared(img1, img2, config, data_weight, region, flow, dtype)
+    h, w = img1p.shape[:2]
+    out = _level(init, p1, p2, pr, pom, params, config, config.warps)[:h, :w]
+    return jnp.where(jnp.asarray(region, bool)[..., None], out, flow.astype(dtype))
+
+
+def refine_flow(
+    flow, img1, img2, params: FlowEnergyParams, config: FlowConfig = FlowConfig(), data_weight=None, region=None, dtype=jnp.float32
+):
+    """`config.warps` warps at full resolution only, starting from `flow` (no pyramid), (H, W, 2).
+
+    For a flow that is already close (a prediction from the previous pose, or a coarse solution).
+    With warps = 1 it returns w + dw, dw the minimiser of `linearised_flow_energy(·, w, ...)`
+    found by the lagged-nonlinearity / SOR iterations.
+    """
+    check_flow_inputs(img1, img2, data_weight, region, flow)
+    h, w = jnp.shape(img1)[:2]
+    r = jnp.ones((h, w), dtype) if data_weight is None else jnp.asarray(data_weight, dtype)
+    om = jnp.ones((h, w), bool) if region is None else jnp.asarray(region, bool)
+    return _refine_jit(jnp.asarray(flow, dtype), jnp.asarray(img1), jnp.asarray(img2), params, config, r, om, dtype)
+
+
+def flow_level_energies(
+    img1, img2, params: FlowEnergyParams, config: FlowConfig = FlowConfig(), data_weight=None, region=None, dtype=jnp.float32
+):
+    """Diagnostic: eq. 6 per pyramid level before and after that level's warps, (L, 2), finest first.
+
+    Row k holds E_k(flow entering level k) and E_k(flow leaving it), each evaluated on level k's
+    images, r and Ω1 (so rows are comparable only within themselves).
+    """
+    check_flow_inputs(img1, img2, data_weight, region)
+    h, w = jnp.shape(img1)[:2]
+    r = jnp.ones((h, w), dtype) if data_weight is None else jnp.asarray(data_weight, dtype)
+    om = jnp.ones((h, w), bool) if region is None else jnp.asarray(region, bool)
+    return _level_energies_jit(jnp.asarray(img1), jnp.asarray(img2), params, config, r, om, dtype)
+
+
+def compute_flow(
+    img1,
+    img2,
+    params: FlowEnergyParams,
+    config: FlowConfig = FlowConfig(),
+    data_weight=None,
+    region=None,
+    init_flow=None,
+    beta=None,
+    dtype=jnp.float32,
+) -> FlowResult:
+    """Dense flow from img1 to img2 minimising eq. 6 inside Ω1 (Brox et al. 2004 numerics).
+
+    Jit-compiled; frames of the same shape (and the same config and optional arguments present)
+    compile once. The parameters of eq. 6 are arrays, so sweeping α or γ does not recompile.
+
+    Args:
+        img1, img2: (H, W) or (H, W, C) frames on the 0-255 scale (any real or integer dtype).
+        params: α, γ, ε and the smoothness type (`articulated_params()`, `rigid_params()`).
+        config: the minimiser's static settings.
+        data_weight: optional (H, W) r(x) ∈ [0, 1]; 0 switches the data term off (occluded pixels),
+            whose flow is then filled in by the smoothness term.
+        region: optional (H, W) bool Ω1; the energy is integrated inside it only (default: the whole
+            image, which is plain Brox et al. 2004 flow).
+        init_flow: optional (H, W, 2) flow to start from (e.g. predicted by the previous pose).
+        beta: β of eq. 8 (default 3 robust / 12 quadratic).
+        dtype: float type of the computation.
+
+    Returns:
+        `FlowResult` with the flow, the local energy and the confidence of eq. 8.
+    """
+    check_flow_inputs(img1, img2, data_weight, region, init_flow)
+    beta = default_beta(params) if beta is None else beta
+    return _compute_flow_jit(img1, img2, params, config, data_weight, region, init_flow, jnp.asarray(beta, dtype), dtype)
