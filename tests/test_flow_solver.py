@@ -1,6 +1,5 @@
 """The flow minimiser: known motions, occlusion weights, convergence, consistency, ROI, compile counts."""
 
-import os
 
 import equinox as eqx
 import jax
@@ -11,19 +10,19 @@ import pytest
 from jaxtrack.cues.flow import (
     FlowConfig,
     FlowEnergyParams,
+    _api,
+    _solver,
     compute_flow,
     compute_flow_bidirectional,
     compute_flow_roi,
     flow_energy,
     flow_level_energies,
-    gaussian_blur,
     linearised_flow_energy,
     prepare_image,
     pyramid_shapes,
     refine_flow,
     roi_crop,
 )
-from jaxtrack.cues.flow import _api, _solver
 from jaxtrack.io import flow_errors, read_flo
 
 # Small, fast settings shared by the tests (one compile per image size within a worker).
@@ -173,7 +172,7 @@ def test_gradient_of_linearised_energy_vanishes_at_the_solution():
     g_start = np.linalg.norm(np.asarray(grad(jnp.zeros_like(w0), w0, i1, i2, PARAMS)))
     g_end = np.linalg.norm(np.asarray(grad(w1 - w0, w0, i1, i2, PARAMS)))
     assert g_end < 1e-2 * g_start
-    e = lambda d: float(linearised_flow_energy(d, w0, i1, i2, PARAMS))  # noqa: E731
+    e = lambda d: float(linearised_flow_energy(d, w0, i1, i2, PARAMS))
     assert e(w1 - w0) < e(jnp.zeros_like(w0))
 
 
@@ -214,7 +213,7 @@ def test_roi_mode_matches_the_motion_and_reuses_its_compile():
     assert _epe(res.flow, np.array([0.7, 0.2]), inner) < 0.05
     assert np.all(np.asarray(res.flow)[~region] == 0)
     moved = np.roll(region, (3, 5), axis=(0, 1))  # same size class: no new compile
-    res2, box2 = compute_flow_roi(img1, img2, PARAMS, moved, CFG, margin=8)
+    _, box2 = compute_flow_roi(img1, img2, PARAMS, moved, CFG, margin=8)
     assert box2 != box and box2[2:] == box[2:]
     assert eqx.debug.get_num_traces(_api._roi_body) == before + 1
     with pytest.raises(ValueError, match="empty"):
@@ -270,3 +269,28 @@ def test_middlebury_smoke(shared_data):
     res = compute_flow(img1, img2, PARAMS, CFG)
     err = flow_errors(np.asarray(res.flow), gt)
     assert err["epe"] < 0.3 and err["aae"] < 8.0
+
+
+def test_cli_writes_flo_and_visualisation(tmp_path):
+    import cv2
+
+    from jaxtrack.cli import main
+    from jaxtrack.io import write_flo
+
+    sample = _texture(11)
+    x, y = _grid()
+    shift = np.array([0.5, -0.25])
+    a, b = tmp_path / "a.png", tmp_path / "b.png"
+    cv2.imwrite(str(a), np.clip(sample(x, y), 0, 255).astype(np.uint8))
+    cv2.imwrite(str(b), np.clip(sample(x - shift[0], y - shift[1]), 0, 255).astype(np.uint8))
+    gt = tmp_path / "gt.flo"
+    write_flo(gt, np.broadcast_to(shift, (H, W, 2)).astype(np.float32))
+    out, viz = tmp_path / "out.flo", tmp_path / "out.png"
+    args = ["flow", str(a), str(b), "-o", str(out), "--viz", str(viz), "--gt", str(gt), "--no-cache", "--warps", "5"]
+    assert main(args) == 0
+    flow = read_flo(out)
+    assert flow.shape == (H, W, 2)
+    assert _epe(flow, shift, _interior((H, W))) < 0.1  # 8-bit quantised frames
+    assert cv2.imread(str(viz)).shape == (H, W, 3)
+    with pytest.raises(SystemExit, match="cannot read"):
+        main(["flow", str(tmp_path / "missing.png"), str(b), "-o", str(out)])

@@ -12,6 +12,7 @@ from ._energy import flow_confidence as flow_confidence
 from ._energy import flow_energy as flow_energy
 from ._energy import image_gradients as image_gradients
 from ._energy import local_flow_energy as local_flow_energy
+from ._energy import middlebury_params as middlebury_params
 from ._energy import rigid_params as rigid_params
 from ._energy import sample_bilinear as sample_bilinear
 from ._energy import warp_bilinear as warp_bilinear
@@ -21,8 +22,8 @@ from ._solver import FlowConfig as FlowConfig
 from ._solver import FlowResult as FlowResult
 from ._solver import MotionTensor as MotionTensor
 from ._solver import compute_flow as compute_flow
+from ._solver import flow_level_energies as flow_level_energies
 from ._solver import linearised_flow_energy as linearised_flow_energy
 from ._solver import motion_tensor as motion_tensor
 from ._solver import prepare_image as prepare_image
-from ._solver import flow_level_energies as flow_level_energies
 from ._solver import refine_flow as refine_flow

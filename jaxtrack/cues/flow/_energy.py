@@ -43,6 +43,18 @@ def rigid_params() -> FlowEnergyParams:
     return FlowEnergyParams(jnp.asarray(800.0), jnp.asarray(5.0), jnp.asarray(1e-3), False)
 
 
+def middlebury_params() -> FlowEnergyParams:
+    """Plain Brox flow tuned once on the Middlebury training pairs (robust smoothness).
+
+    Used by `jaxtrack flow` and `experiments/bench_flow.py`; the tracker uses the paper's values.
+    """
+    return FlowEnergyParams(jnp.asarray(MIDDLEBURY_ALPHA), jnp.asarray(MIDDLEBURY_GAMMA), jnp.asarray(1e-3), True)
+
+
+MIDDLEBURY_ALPHA = 5.0
+MIDDLEBURY_GAMMA = 7.0
+
+
 def _channels(img):
     return img[..., None] if img.ndim == 2 else img
 
