@@ -9,7 +9,7 @@ import numpy as np
 
 from ._consistency import forward_backward_consistency
 from ._energy import FlowEnergyParams
-from ._solver import FlowConfig, FlowResult, check_flow_inputs, default_beta, flow_core
+from ._solver import FlowConfig, FlowResult, check_flow_inputs, default_beta, flow_core, weight_and_region
 
 # Side lengths of the static crop classes of the ROI mode (≈ √2 apart, multiples of 16).
 ROI_SIZES = (32, 48, 64, 96, 128, 176, 256, 352, 512, 704, 1024, 1408, 2048)
@@ -69,11 +69,8 @@ def compute_flow_bidirectional(
     """
     check_flow_inputs(img1, img2, data_weight, region)
     check_flow_inputs(img1, img2, None, region2)
-    h, w = jnp.shape(img1)[:2]
-    ones, full = jnp.ones((h, w), dtype), jnp.ones((h, w), bool)
-    r1 = ones if data_weight is None else jnp.asarray(data_weight, dtype)
-    om1 = full if region is None else jnp.asarray(region, bool)
-    om2 = full if region2 is None else jnp.asarray(region2, bool)
+    r1, om1 = weight_and_region(jnp.shape(img1)[:2], data_weight, region, dtype)
+    ones, om2 = weight_and_region(jnp.shape(img1)[:2], None, region2, dtype)
     beta = default_beta(params) if beta is None else beta
     return _bidirectional_jit(
         jnp.asarray(img1), jnp.asarray(img2), params, config, r1, ones, om1, om2, jnp.asarray(beta, dtype), dtype, a1, a2
@@ -164,8 +161,7 @@ def compute_flow_roi(
     """
     check_flow_inputs(img1, img2, data_weight, region, init_flow)
     box = roi_crop(region, margin)
-    h, w = jnp.shape(img1)[:2]
-    r = jnp.ones((h, w), dtype) if data_weight is None else jnp.asarray(data_weight, dtype)
+    r, _ = weight_and_region(jnp.shape(img1)[:2], data_weight, None, dtype)
     beta = default_beta(params) if beta is None else beta
     offset = jnp.asarray(box[:2], jnp.int32)
     res = _roi_jit(

@@ -204,9 +204,7 @@ def linearised_flow_energy(dflow, flow, img1, img2, params: FlowEnergyParams, da
     """
     img1 = img1[..., None] if img1.ndim == 2 else img1
     img2 = img2[..., None] if img2.ndim == 2 else img2
-    h, w = img1.shape[:2]
-    r = jnp.ones((h, w), flow.dtype) if data_weight is None else jnp.asarray(data_weight, flow.dtype)
-    omega = jnp.ones((h, w), bool) if region is None else jnp.asarray(region, bool)
+    r, omega = weight_and_region(img1.shape[:2], data_weight, region, flow.dtype)
     J = motion_tensor(flow, img1.astype(flow.dtype), img2.astype(flow.dtype), params.gamma, r, omega)
     eps2 = params.epsilon**2
     data = J.rho * jnp.sqrt(jnp.maximum(_data_s2(J, dflow[..., 0], dflow[..., 1]), 0.0) + eps2)
@@ -364,6 +362,13 @@ def check_flow_inputs(img1, img2, data_weight=None, region=None, init_flow=None)
             raise ValueError(f"compute_flow: {name} must have shape {hw + extra}, got {tuple(jnp.shape(a))}")
 
 
+def weight_and_region(shape, data_weight, region, dtype):
+    """r(x) (default 1) and Ω1 (default: the whole image) as (H, W) arrays of `dtype` and bool."""
+    r = jnp.ones(shape, dtype) if data_weight is None else jnp.asarray(data_weight, dtype)
+    om = jnp.ones(shape, bool) if region is None else jnp.asarray(region, bool)
+    return r, om
+
+
 def _pad_even(a, fill):
     """Pad rows/columns at the bottom/right so both sides are even (edge-replicated or `fill`)."""
     h, w = a.shape[:2]
@@ -402,9 +407,7 @@ def flow_core(img1, img2, params, config: FlowConfig, data_weight, region, init_
 
 @eqx.debug.assert_max_traces(max_traces=None)  # counts traces (`eqx.debug.get_num_traces`), never fails
 def _compute_flow_body(img1, img2, params, config, data_weight, region, init_flow, beta, dtype):
-    h, w = img1.shape[:2]
-    r = jnp.ones((h, w), dtype) if data_weight is None else data_weight
-    om = jnp.ones((h, w), bool) if region is None else region
+    r, om = weight_and_region(img1.shape[:2], data_weight, region, dtype)
     return flow_core(img1, img2, params, config, r, om, init_flow, beta, dtype)
 
 
@@ -435,9 +438,7 @@ def refine_flow(
     found by the lagged-nonlinearity / SOR iterations.
     """
     check_flow_inputs(img1, img2, data_weight, region, flow)
-    h, w = jnp.shape(img1)[:2]
-    r = jnp.ones((h, w), dtype) if data_weight is None else jnp.asarray(data_weight, dtype)
-    om = jnp.ones((h, w), bool) if region is None else jnp.asarray(region, bool)
+    r, om = weight_and_region(jnp.shape(img1)[:2], data_weight, region, dtype)
     return _refine_jit(jnp.asarray(flow, dtype), jnp.asarray(img1), jnp.asarray(img2), params, config, r, om, dtype)
 
 
@@ -450,9 +451,7 @@ def flow_level_energies(
     images, r and Ω1 (so rows are comparable only within themselves).
     """
     check_flow_inputs(img1, img2, data_weight, region)
-    h, w = jnp.shape(img1)[:2]
-    r = jnp.ones((h, w), dtype) if data_weight is None else jnp.asarray(data_weight, dtype)
-    om = jnp.ones((h, w), bool) if region is None else jnp.asarray(region, bool)
+    r, om = weight_and_region(jnp.shape(img1)[:2], data_weight, region, dtype)
     return _level_energies_jit(jnp.asarray(img1), jnp.asarray(img2), params, config, r, om, dtype)
 
 
