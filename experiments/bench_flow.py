@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxtrack.cues.flow import FlowConfig, FlowEnergyParams, compute_flow, middlebury_params
+from jaxtrack.cues.flow import FlowConfig, FlowEnergyParams, compute_flow, middlebury_config, middlebury_params
 from jaxtrack.io import flow_errors, flow_to_colour, read_flo
 
 RESULTS = pathlib.Path(__file__).resolve().parent / "results"
@@ -82,7 +82,7 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="RubberWhale and Yosemite only")
     ap.add_argument("--out", default=str(RESULTS / "bench_flow.md"))
     ap.add_argument("--viz", default=str(RESULTS / "bench_flow.png"), help="colour-wheel comparison image ('' = none)")
-    d, c = middlebury_params(), FlowConfig()
+    d, c = middlebury_params(), middlebury_config()
     ap.add_argument("--alpha", type=float, default=float(d.alpha))
     ap.add_argument("--gamma", type=float, default=float(d.gamma))
     ap.add_argument("--eta", type=float, default=c.eta)
@@ -90,13 +90,16 @@ def main(argv=None):
     ap.add_argument("--lagged", type=int, default=c.lagged)
     ap.add_argument("--sor", type=int, default=c.sor_iters)
     ap.add_argument("--sigma", type=float, default=c.presmooth_sigma)
+    ap.add_argument("--median", type=int, default=c.median, help="median filter side after each warp (0 = off)")
     args = ap.parse_args(argv)
     # One OpenCV thread, as in the reference figures of ../shared/data/README.md; OpenCV's idle worker
     # threads otherwise compete with XLA's for the two cores and slowed jaxtrack by ~2x in this script.
     cv2.setNumThreads(1)
 
     params = FlowEnergyParams(jnp.asarray(args.alpha), jnp.asarray(args.gamma), jnp.asarray(1e-3), True)
-    config = FlowConfig(eta=args.eta, warps=args.warps, lagged=args.lagged, sor_iters=args.sor, presmooth_sigma=args.sigma)
+    config = FlowConfig(
+        eta=args.eta, warps=args.warps, lagged=args.lagged, sor_iters=args.sor, presmooth_sigma=args.sigma, median=args.median
+    )
     names = ("RubberWhale",) if args.quick else MIDDLEBURY
     rows, tiles = [], []
     for name in names + ("Yosemite",):
@@ -123,7 +126,7 @@ def main(argv=None):
         f"({cv2.getNumThreads()} threads). Grey frames.",
         f"jaxtrack: α = {args.alpha:g}, γ = {args.gamma:g}, ε = 0.001, robust smoothness; η = {config.eta}, "
         f"{config.warps} warps/level, {config.lagged} lagged iterations x {config.sor_iters} SOR sweeps, "
-        f"pre-smoothing σ = {config.presmooth_sigma}, float32. Seconds exclude compilation (one warm-up call per frame size).",
+        f"pre-smoothing σ = {config.presmooth_sigma}, median filter {config.median or 'off'}, float32. Seconds exclude compilation (one warm-up call per frame size).",
         "",
         "| sequence | size | jaxtrack EPE | jaxtrack AAE | jaxtrack s | DIS EPE | DIS AAE | DIS s | Farneback EPE | Farneback AAE | Farneback s |",
         "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",

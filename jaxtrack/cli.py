@@ -144,7 +144,9 @@ def _cmd_flow(args) -> int:
     params = FlowEnergyParams(
         jnp.asarray(args.alpha), jnp.asarray(args.gamma), jnp.asarray(args.epsilon), not args.quadratic
     )
-    config = FlowConfig(eta=args.eta, warps=args.warps, lagged=args.lagged, sor_iters=args.sor, presmooth_sigma=args.sigma)
+    config = FlowConfig(
+        eta=args.eta, warps=args.warps, lagged=args.lagged, sor_iters=args.sor, presmooth_sigma=args.sigma, median=args.median
+    )
     t0 = time.perf_counter()
     res = compute_flow(img1, img2, params, config, region=region)
     flow = np.asarray(res.flow)
@@ -210,9 +212,9 @@ def build_parser() -> argparse.ArgumentParser:
     synth.add_argument("--quiet", action="store_true", help="no progress bar")
     synth.set_defaults(func=_cmd_synth)
 
-    from jaxtrack.cues.flow import FlowConfig, middlebury_params
+    from jaxtrack.cues.flow import middlebury_config, middlebury_params
 
-    defaults, cfg = middlebury_params(), FlowConfig()
+    defaults, cfg = middlebury_params(), middlebury_config()
     flow = sub.add_parser(
         "flow",
         help="dense variational optical flow between two frames (Brox et al. 2004), .flo output",
@@ -236,6 +238,7 @@ def build_parser() -> argparse.ArgumentParser:
     flow.add_argument("--warps", type=int, default=cfg.warps, help=f"warps per level (default {cfg.warps})")
     flow.add_argument("--lagged", type=int, default=cfg.lagged, help=f"lagged-nonlinearity iterations per warp (default {cfg.lagged})")
     flow.add_argument("--sor", type=int, default=cfg.sor_iters, help=f"SOR sweeps per lagged iteration (default {cfg.sor_iters})")
+    flow.add_argument("--median", type=int, default=cfg.median, help=f"median filter side after each warp, 0 = off (default {cfg.median})")
     flow.add_argument("--sigma", type=float, default=cfg.presmooth_sigma, help=f"pre-smoothing σ in px (default {cfg.presmooth_sigma})")
     flow.add_argument("--grey", action="store_true", help="convert colour frames to grey first")
     flow.add_argument("--no-cache", action="store_true", help="do not use the on-disk compilation cache")

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from jaxtrack.cues.flow import (
+    FlowEnergyParams,
     articulated_params,
     flow_confidence,
     flow_energy,
@@ -51,11 +52,13 @@ def test_true_translation_has_lowest_energy(params):
     assert e_true < float(flow_energy(jnp.zeros_like(true), img1, img2, params))
 
 
-def test_gradient_matches_finite_differences():
+@pytest.mark.parametrize("separate", [False, True], ids=["joint-penalty", "separate-penalties"])
+def test_gradient_matches_finite_differences(separate):
     sample, x, y = _textured(12, 14)
     img1, img2 = jnp.asarray(sample(x, y)), jnp.asarray(sample(x - 0.4, y + 0.2))
     flow = jnp.asarray(np.random.default_rng(1).normal(scale=0.3, size=(12, 14, 2)))
-    params = articulated_params()
+    a = articulated_params()
+    params = FlowEnergyParams(a.alpha, a.gamma, a.epsilon, True, separate)
     g = jax.grad(flow_energy)(flow, img1, img2, params)
     eps = 1e-6
     for idx in [(3, 4, 0), (7, 9, 1), (0, 0, 0), (11, 13, 1)]:

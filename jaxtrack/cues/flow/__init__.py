@@ -27,3 +27,5 @@ from ._solver import linearised_flow_energy as linearised_flow_energy
 from ._solver import motion_tensor as motion_tensor
 from ._solver import prepare_image as prepare_image
 from ._solver import refine_flow as refine_flow
+from ._solver import median_filter_flow as median_filter_flow
+from ._solver import middlebury_config as middlebury_config
