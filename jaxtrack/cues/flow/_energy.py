@@ -55,8 +55,8 @@ def middlebury_params() -> FlowEnergyParams:
     return FlowEnergyParams(jnp.asarray(MIDDLEBURY_ALPHA), jnp.asarray(MIDDLEBURY_GAMMA), jnp.asarray(1e-3), True)
 
 
-MIDDLEBURY_ALPHA = 5.0
-MIDDLEBURY_GAMMA = 7.0
+MIDDLEBURY_ALPHA = 4.0
+MIDDLEBURY_GAMMA = 5.0
 
 
 def _channels(img):
