@@ -90,7 +90,9 @@ def main(argv=None):
     ap.add_argument("--lagged", type=int, default=c.lagged)
     ap.add_argument("--sor", type=int, default=c.sor_iters)
     ap.add_argument("--sigma", type=float, default=c.presmooth_sigma)
-    ap.add_argument("--median", type=int, default=c.median, help="median filter side after each warp (0 = off)")
+    ap.add_argument("--median", type=int, default=c.median, help="median filter side (0 = off, 3, 5)")
+    ap.add_argument("--median-every-warp", dest="median_every_warp", action=argparse.BooleanOptionalAction,
+                    default=c.median_every_warp, help="median after every warp instead of after every level")
     args = ap.parse_args(argv)
     # One OpenCV thread, as in the reference figures of ../shared/data/README.md; OpenCV's idle worker
     # threads otherwise compete with XLA's for the two cores and slowed jaxtrack by ~2x in this script.
@@ -98,7 +100,8 @@ def main(argv=None):
 
     params = FlowEnergyParams(jnp.asarray(args.alpha), jnp.asarray(args.gamma), jnp.asarray(1e-3), True)
     config = FlowConfig(
-        eta=args.eta, warps=args.warps, lagged=args.lagged, sor_iters=args.sor, presmooth_sigma=args.sigma, median=args.median
+        eta=args.eta, warps=args.warps, lagged=args.lagged, sor_iters=args.sor, presmooth_sigma=args.sigma, median=args.median,
+        median_every_warp=args.median_every_warp,
     )
     names = ("RubberWhale",) if args.quick else MIDDLEBURY
     rows, tiles = [], []
@@ -118,6 +121,8 @@ def main(argv=None):
             tiles.append(np.concatenate([cv2.cvtColor(img1, cv2.COLOR_GRAY2RGB), flow_to_colour(gt, scale), flow_to_colour(ours, scale)], 1))
 
     mb = [r for r in rows if r[0] in MIDDLEBURY]
+    every = "warp" if config.median_every_warp else "level"
+    median_text = f"{config.median}x{config.median} after every {every}" if config.median else "off"
     lines = [
         "# Optical flow: jaxtrack (Brox et al. 2004 energy) vs OpenCV DIS (medium) and Farneback",
         "",
@@ -126,7 +131,7 @@ def main(argv=None):
         f"({cv2.getNumThreads()} threads). Grey frames.",
         f"jaxtrack: α = {args.alpha:g}, γ = {args.gamma:g}, ε = 0.001, robust smoothness; η = {config.eta}, "
         f"{config.warps} warps/level, {config.lagged} lagged iterations x {config.sor_iters} SOR sweeps, "
-        f"pre-smoothing σ = {config.presmooth_sigma}, median filter {config.median or 'off'}, float32. Seconds exclude compilation (one warm-up call per frame size).",
+        f"pre-smoothing σ = {config.presmooth_sigma}, median filter {median_text}, float32. Seconds exclude compilation (one warm-up call per frame size).",
         "",
         "| sequence | size | jaxtrack EPE | jaxtrack AAE | jaxtrack s | DIS EPE | DIS AAE | DIS s | Farneback EPE | Farneback AAE | Farneback s |",
         "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",

@@ -145,7 +145,8 @@ def _cmd_flow(args) -> int:
         jnp.asarray(args.alpha), jnp.asarray(args.gamma), jnp.asarray(args.epsilon), not args.quadratic
     )
     config = FlowConfig(
-        eta=args.eta, warps=args.warps, lagged=args.lagged, sor_iters=args.sor, presmooth_sigma=args.sigma, median=args.median
+        eta=args.eta, warps=args.warps, lagged=args.lagged, sor_iters=args.sor, presmooth_sigma=args.sigma, median=args.median,
+        median_every_warp=args.median_every_warp,
     )
     t0 = time.perf_counter()
     res = compute_flow(img1, img2, params, config, region=region)
@@ -238,7 +239,9 @@ def build_parser() -> argparse.ArgumentParser:
     flow.add_argument("--warps", type=int, default=cfg.warps, help=f"warps per level (default {cfg.warps})")
     flow.add_argument("--lagged", type=int, default=cfg.lagged, help=f"lagged-nonlinearity iterations per warp (default {cfg.lagged})")
     flow.add_argument("--sor", type=int, default=cfg.sor_iters, help=f"SOR sweeps per lagged iteration (default {cfg.sor_iters})")
-    flow.add_argument("--median", type=int, default=cfg.median, help=f"median filter side after each warp, 0 = off (default {cfg.median})")
+    flow.add_argument("--median", type=int, default=cfg.median, choices=(0, 3, 5), help=f"median filter side, 0 = off (default {cfg.median})")
+    flow.add_argument("--median-every-warp", dest="median_every_warp", action=argparse.BooleanOptionalAction,
+                      default=cfg.median_every_warp, help="median after every warp instead of after every pyramid level")
     flow.add_argument("--sigma", type=float, default=cfg.presmooth_sigma, help=f"pre-smoothing σ in px (default {cfg.presmooth_sigma})")
     flow.add_argument("--grey", action="store_true", help="convert colour frames to grey first")
     flow.add_argument("--no-cache", action="store_true", help="do not use the on-disk compilation cache")

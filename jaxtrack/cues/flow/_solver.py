@@ -94,7 +94,12 @@ class FlowConfig(eqx.Module):
 
 def middlebury_config() -> FlowConfig:
     """The minimiser settings of `jaxtrack flow` and the benchmark: the defaults plus a 3x3 median
-    filter of the flow after every warp."""
+    filter of the flow after every warp.
+
+    Measured on Middlebury (α = 4, γ = 5, `experiments/bench_flow.py`): mean EPE 0.303 at about 1.0 s per
+    640x480 pair; a 5x5 median after every level gives 0.296 at about 1.4 s, and 5x5 after every warp
+    0.293 at several seconds.
+    """
     return FlowConfig(median=3)
 
 
