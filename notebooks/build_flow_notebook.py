@@ -3,12 +3,7 @@
 Needs the notebook extra (pip install -e ".[notebooks]") and ../shared/data/flow beside the repository.
 """
 
-import pathlib
-
-import nbformat
-from nbclient import NotebookClient
-
-HERE = pathlib.Path(__file__).resolve().parent
+from _notebook import build
 
 CELLS = [
     ("md", "# jaxtrack optical flow: Brox et al. 2004 in JAX, with occlusion weights and a region\n\n"
@@ -65,13 +60,7 @@ CELLS = [
 
 
 def main():
-    nb = nbformat.v4.new_notebook()
-    nb.cells = [nbformat.v4.new_markdown_cell(src) if kind == "md" else nbformat.v4.new_code_cell(src) for kind, src in CELLS]
-    nb.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}
-    NotebookClient(nb, timeout=900, kernel_name="python3", resources={"metadata": {"path": str(HERE)}}).execute()
-    out = HERE / "optical_flow.ipynb"
-    nbformat.write(nb, out)
-    print(f"wrote {out}")
+    build(CELLS, "optical_flow.ipynb", timeout=900)
 
 
 if __name__ == "__main__":

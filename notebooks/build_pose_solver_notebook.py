@@ -3,12 +3,7 @@
 Needs the notebook extra: pip install -e ".[notebooks]".
 """
 
-import pathlib
-
-import nbformat
-from nbclient import NotebookClient
-
-HERE = pathlib.Path(__file__).resolve().parent
+from _notebook import build
 
 CELLS = [
     ("md", "# jaxtrack pose solver: jit, vmap over cue weights, implicit gradients\n\n"
@@ -54,13 +49,7 @@ CELLS = [
 
 
 def main():
-    nb = nbformat.v4.new_notebook()
-    nb.cells = [nbformat.v4.new_markdown_cell(src) if kind == "md" else nbformat.v4.new_code_cell(src) for kind, src in CELLS]
-    nb.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}
-    NotebookClient(nb, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(HERE)}}).execute()
-    out = HERE / "pose_solver.ipynb"
-    nbformat.write(nb, out)
-    print(f"wrote {out}")
+    build(CELLS, "pose_solver.ipynb", timeout=600)
 
 
 if __name__ == "__main__":

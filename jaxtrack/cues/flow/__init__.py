@@ -24,8 +24,8 @@ from ._solver import MotionTensor as MotionTensor
 from ._solver import compute_flow as compute_flow
 from ._solver import flow_level_energies as flow_level_energies
 from ._solver import linearised_flow_energy as linearised_flow_energy
+from ._solver import median_filter_flow as median_filter_flow
+from ._solver import middlebury_config as middlebury_config
 from ._solver import motion_tensor as motion_tensor
 from ._solver import prepare_image as prepare_image
 from ._solver import refine_flow as refine_flow
-from ._solver import median_filter_flow as median_filter_flow
-from ._solver import middlebury_config as middlebury_config

@@ -16,6 +16,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from ._quarters import ip, kp
+
 
 class FlowEnergyParams(eqx.Module):
     """Parameters of eq. 6 (arrays, so sweeping or differentiating them does not recompile).
@@ -107,6 +109,18 @@ def warp_bilinear(img, flow):
     return sample_bilinear(img, gx + flow[..., 0], gy + flow[..., 1])
 
 
+def smoothness_s2(U, V, in_x, in_y, right=kp, down=ip):
+    """|∇w|² per pixel: forward differences on the edges (p, p+x) and (p, p+y) that lie inside Ω1.
+
+    `in_x`/`in_y` mark those edges; `right`/`down` give the neighbour values (full layout by default,
+    the solver passes its parity-layout shifts). Shared by the energy and the solver so both use one
+    discretisation.
+    """
+    dux, dvx = right(U) - U, right(V) - V
+    duy, dvy = down(U) - U, down(V) - V
+    return jnp.where(in_x, dux * dux + dvx * dvx, 0.0) + jnp.where(in_y, duy * duy + dvy * dvy, 0.0)
+
+
 def local_flow_energy(flow, img1, img2, params: FlowEnergyParams, data_weight=None, region=None):
     """Per-pixel energy density e(x) (H, W) of eq. 6 (data + α · smoothness); its sum is E.
 
@@ -134,12 +148,8 @@ def local_flow_energy(flow, img1, img2, params: FlowEnergyParams, data_weight=No
     else:
         psi_data = jnp.sqrt(grey2 + params.gamma * grad2 + eps2)
     data = jnp.where(omega & inside, r * psi_data, 0.0)
-    # Forward differences; a term exists where the pixel and its right/lower neighbour are both in Ω1.
-    du_x = jnp.zeros_like(flow).at[:, :-1].set(flow[:, 1:] - flow[:, :-1])
-    du_y = jnp.zeros_like(flow).at[:-1].set(flow[1:] - flow[:-1])
-    in_x = jnp.zeros((h, w), bool).at[:, :-1].set(omega[:, 1:] & omega[:, :-1])
-    in_y = jnp.zeros((h, w), bool).at[:-1].set(omega[1:] & omega[:-1])
-    grad_sq = jnp.sum(jnp.where(in_x[..., None], du_x**2, 0.0) + jnp.where(in_y[..., None], du_y**2, 0.0), -1)
+    in_x, in_y = omega & kp(omega), omega & ip(omega)
+    grad_sq = smoothness_s2(flow[..., 0], flow[..., 1], in_x, in_y)
     smooth = jnp.sqrt(grad_sq + eps2) if params.robust_smoothness else grad_sq
     smooth = jnp.where(omega, smooth, 0.0)
     return data + params.alpha * smooth

@@ -36,6 +36,7 @@ from ._energy import (
     image_gradients,
     local_flow_energy,
     sample_bilinear,
+    smoothness_s2,
     warp_bilinear,
 )
 from ._pyramid import downsample, gaussian_blur, pyramid_shapes, upsample_flow
@@ -238,22 +239,6 @@ def _data_energy(J: MotionTensor, du, dv, params: FlowEnergyParams):
     return J.rho * jnp.sqrt(sg + params.gamma * sd + eps2)
 
 
-# Full-layout neighbour values with zero fill (the matching edge weights are zero there).
-def _right(a):
-    return jnp.pad(a[:, 1:], ((0, 0), (0, 1)))
-
-
-def _down(a):
-    return jnp.pad(a[1:], ((0, 1), (0, 0)))
-
-
-def _smoothness_s2(U, V, in_x, in_y, right=_right, down=_down):
-    """|∇w|² per pixel with forward differences on Ω1-internal edges (as in `local_flow_energy`)."""
-    dux, dvx = right(U) - U, right(V) - V
-    duy, dvy = down(U) - U, down(V) - V
-    return jnp.where(in_x, dux * dux + dvx * dvx, 0.0) + jnp.where(in_y, duy * duy + dvy * dvy, 0.0)
-
-
 def linearised_flow_energy(dflow, flow, img1, img2, params: FlowEnergyParams, data_weight=None, region=None):
     """Eq. 6 with the data term linearised around `flow` (what one warp of the solver minimises).
 
@@ -271,9 +256,9 @@ def linearised_flow_energy(dflow, flow, img1, img2, params: FlowEnergyParams, da
     J = motion_tensor(flow, img1.astype(flow.dtype), img2.astype(flow.dtype), r, omega)
     eps2 = params.epsilon**2
     data = _data_energy(J, dflow[..., 0], dflow[..., 1], params)
-    in_x, in_y = omega & _right(omega), omega & _down(omega)
+    in_x, in_y = omega & kp(omega), omega & ip(omega)
     W = flow + dflow
-    g = _smoothness_s2(W[..., 0], W[..., 1], in_x, in_y)
+    g = smoothness_s2(W[..., 0], W[..., 1], in_x, in_y)
     smooth = jnp.sqrt(g + eps2) if params.robust_smoothness else g
     return jnp.sum(data) + params.alpha * jnp.sum(jnp.where(omega, smooth, 0.0))
 
@@ -298,7 +283,7 @@ def _solve_increment(J: MotionTensor, u, v, region, params: FlowEnergyParams, co
         # Frozen robust weights (the lagged nonlinearity).
         wg, wd = _data_weights(J, du, dv, params)
         if params.robust_smoothness:
-            psi = 0.5 / jnp.sqrt(_smoothness_s2(u + du, v + dv, in_x, in_y, q_right, q_down) + eps2)
+            psi = 0.5 / jnp.sqrt(smoothness_s2(u + du, v + dv, in_x, in_y, q_right, q_down) + eps2)
         else:
             psi = jnp.ones_like(u)
         a_e = jnp.where(in_x, alpha * psi, 0.0)  # weight of edge (p, p+x)
