@@ -12,8 +12,8 @@ from jaxtrack.cues.flow import (
     flow_energy,
     local_flow_energy,
     rigid_params,
-    warp_bilinear,
 )
+from jaxtrack.image import warp_bilinear
 
 
 def _textured(h=40, w=48, seed=0):

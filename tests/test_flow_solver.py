@@ -20,10 +20,10 @@ from jaxtrack.cues.flow import (
     linearised_flow_energy,
     median_filter_flow,
     prepare_image,
-    pyramid_shapes,
     refine_flow,
     roi_crop,
 )
+from jaxtrack.image import pyramid_shapes
 from jaxtrack.io import flow_errors, read_flo
 
 # Small, fast settings shared by the tests (one compile per image size within a worker).

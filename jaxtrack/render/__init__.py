@@ -1,7 +1,7 @@
 """JAX rasteriser: silhouette, depth, face id, surface points, visibility, signed distance."""
 
-from ._distance import nearest_seed_distance as nearest_seed_distance
-from ._distance import silhouette_sdf as silhouette_sdf
+from ..image import nearest_seed_distance as nearest_seed_distance  # Φ0 lives with the image ops
+from ..image import silhouette_sdf as silhouette_sdf
 from ._mesh import Mesh as Mesh
 from ._mesh import box_mesh as box_mesh
 from ._mesh import make_mesh as make_mesh

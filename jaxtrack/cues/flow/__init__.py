@@ -10,14 +10,9 @@ from ._energy import FlowEnergyParams as FlowEnergyParams
 from ._energy import articulated_params as articulated_params
 from ._energy import flow_confidence as flow_confidence
 from ._energy import flow_energy as flow_energy
-from ._energy import image_gradients as image_gradients
 from ._energy import local_flow_energy as local_flow_energy
 from ._energy import middlebury_params as middlebury_params
 from ._energy import rigid_params as rigid_params
-from ._energy import sample_bilinear as sample_bilinear
-from ._energy import warp_bilinear as warp_bilinear
-from ._pyramid import gaussian_blur as gaussian_blur
-from ._pyramid import pyramid_shapes as pyramid_shapes
 from ._solver import FlowConfig as FlowConfig
 from ._solver import FlowResult as FlowResult
 from ._solver import MotionTensor as MotionTensor

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from ._energy import warp_bilinear
+from ...image import warp_bilinear
 
 
 def forward_backward_consistency(flow_fw, flow_bw, a1=0.01, a2=0.5):

@@ -22,7 +22,6 @@ gives the energy the solver actually decreases at the finest level.
 
 from __future__ import annotations
 
-import functools
 from typing import NamedTuple
 
 import equinox as eqx
@@ -30,16 +29,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._energy import (
-    FlowEnergyParams,
-    flow_energy,
+from ...image import (
+    downsample,
+    gaussian_blur,
     image_gradients,
-    local_flow_energy,
+    median_filter,
+    pyramid_shapes,
     sample_bilinear,
-    smoothness_s2,
+    upsample_flow,
     warp_bilinear,
 )
-from ._pyramid import downsample, gaussian_blur, pyramid_shapes, upsample_flow
+from ._energy import FlowEnergyParams, flow_energy, local_flow_energy, smoothness_s2
 from ._quarters import from_quarters, im, ip, km, kp, q_down, q_left, q_right, q_up, to_quarters
 
 
@@ -158,7 +158,7 @@ def prepare_image(img, sigma: float, dtype=jnp.float32):
 
 
 def derivative_stack(img2):
-    """[I2, ∂x I2, ∂y I2, ∂xx I2, ∂xy I2, ∂yy I2] on I2's grid (central differences), (H, W, 6C)."""
+    """[I2, ∂x I2, ∂y I2, ∂xx I2, ∂xy I2, ∂yy I2] on I2's grid (5-point stencil), (H, W, 6C)."""
     g2x, g2y = image_gradients(img2)
     g2xx, g2xy = image_gradients(g2x)
     g2yx, g2yy = image_gradients(g2y)
@@ -188,7 +188,7 @@ def _tensor(warped, inside, i1_stack, data_weight, region) -> MotionTensor:
 def motion_tensor(flow, img1, img2, data_weight, region) -> MotionTensor:
     """Linearise the data term of eq. 6 around `flow` (the outer fixed point's linearisation).
 
-    I2, ∂xI2, ∂yI2 and the second derivatives are taken on I2's grid (central differences) and then
+    I2, ∂xI2, ∂yI2 and the second derivatives are taken on I2's grid (5-point stencil) and then
     warped bilinearly by `flow`; the increment's coefficients are the warped first derivatives (grey
     value constancy) and the warped Hessian (gradient constancy).
 
@@ -339,95 +339,14 @@ def _solve_increment(J: MotionTensor, u, v, region, params: FlowEnergyParams, co
     return jax.lax.fori_loop(0, config.lagged, inner, (zero, zero))
 
 
-def _batcher_comparators(n: int) -> list[tuple[int, int]]:
-    """Compare-exchange pairs of Batcher's odd-even merge sort on n = 2^k wires."""
-    out, p = [], 1
-    while p < n:
-        k = p
-        while k >= 1:
-            for j in range(k % p, n - k, 2 * k):
-                for i in range(min(k, n - j - k)):
-                    if (i + j) // (2 * p) == (i + j + k) // (2 * p):
-                        out.append((i + j, i + j + k))
-            k //= 2
-        p *= 2
-    return out
-
-
-@functools.lru_cache(maxsize=None)
-def median_network(m: int):
-    """A selection network for the median of m (odd) values, derived from Batcher's sorting network.
-
-    The m values are padded to a power of two with −∞ and +∞ wires; comparators with a constant wire
-    become moves or vanish, and comparators whose outputs never reach the median wire are pruned
-    (backward liveness). For m = 25 this leaves 114 comparators (102 min + 102 max).
-
-    Returns:
-        (ops, input_wires, median_wire); ops are ("mv", src, dst) or ("cx", lo, hi, need_min, need_max).
-    """
-    n = 1
-    while n < m:
-        n *= 2
-    lo = (n - m) // 2
-    kind = ["-"] * lo + ["x"] * m + ["+"] * (n - m - lo)
-    ops = []
-    for a, b in _batcher_comparators(n):
-        ka, kb = kind[a], kind[b]
-        if ka == "-" or kb == "+":  # already in order
-            continue
-        if ka == "+" and kb == "-":
-            kind[a], kind[b] = "-", "+"
-        elif ka == "+":  # data moves down to a
-            kind[a], kind[b] = "x", "+"
-            ops.append(("mv", b, a))
-        elif kb == "-":  # data moves up to b
-            kind[a], kind[b] = "-", "x"
-            ops.append(("mv", a, b))
-        else:
-            ops.append(("cx", a, b))
-    target = lo + m // 2
-    live, kept = {target}, []
-    for op in reversed(ops):
-        if op[0] == "mv":
-            if op[2] in live:
-                live.discard(op[2])
-                live.add(op[1])
-                kept.append(op)
-        elif op[1] in live or op[2] in live:
-            kept.append(("cx", op[1], op[2], op[1] in live, op[2] in live))
-            live.update(op[1:3])
-    return tuple(kept[::-1]), tuple(range(lo, lo + m)), target
-
-
 def median_filter_flow(flow, region, size: int = 3):
     """Median of each flow component over a size x size window (size 3 or 5), inside Ω1, (H, W, 2).
 
-    Evaluated by `median_network`, elementwise min/max that fuse into one XLA loop (640x480x2:
-    3x3 about 3 ms, 5x5 about 34 ms on this CPU; a `jnp.median` sort of the stacked window cost
-    over 1 s). Window pixels outside Ω1 (or beyond the border) take the centre pixel's value, so the
-    filter neither pulls the flow towards the zeros outside the region nor across its boundary.
+    Window pixels outside Ω1 (or beyond the border) take the centre pixel's value, so the filter
+    neither pulls the flow towards the zeros outside the region nor across its boundary; see
+    `jaxtrack.image.median_filter`.
     """
-    if size not in (3, 5):
-        raise ValueError(f"median_filter_flow supports 3x3 and 5x5 windows, got size {size}")
-    ops, inputs, target = median_network(size * size)
-    r = size // 2
-    h, w = flow.shape[:2]
-    fp = jnp.pad(flow, ((r, r), (r, r), (0, 0)))
-    mp = jnp.pad(region, ((r, r), (r, r)))
-    wires = {}
-    for k, (dy, dx) in enumerate((dy, dx) for dy in range(size) for dx in range(size)):
-        wires[inputs[k]] = jnp.where(mp[dy : dy + h, dx : dx + w, None], fp[dy : dy + h, dx : dx + w], flow)
-    for op in ops:
-        if op[0] == "mv":
-            wires[op[2]] = wires[op[1]]
-        else:
-            _, a, b, need_min, need_max = op
-            x, y = wires[a], wires[b]
-            if need_min:
-                wires[a] = jnp.minimum(x, y)
-            if need_max:
-                wires[b] = jnp.maximum(x, y)
-    return jnp.where(region[..., None], wires[target], flow)
+    return median_filter(flow, size, region)
 
 
 def _level(flow, img1, img2, r, region, params, config: FlowConfig, warps: int):

@@ -1,4 +1,4 @@
-"""Image pyramids for coarse-to-fine flow: separable Gaussian blur and bilinear resampling.
+"""Image pyramids for coarse-to-fine schemes: level shapes, anti-aliased downsampling, resampling.
 
 Everything here works on (H, W, C) arrays with shapes known at trace time; the level shapes are
 computed on the host (`pyramid_shapes`) so that each level is a static-shape computation.
@@ -12,6 +12,8 @@ import math
 
 import jax.numpy as jnp
 import numpy as np
+
+from ._filters import gaussian_blur
 
 
 def pyramid_shapes(height: int, width: int, eta: float, min_size: int, max_levels: int) -> list[tuple[int, int]]:
@@ -40,35 +42,6 @@ def pyramid_shapes(height: int, width: int, eta: float, min_size: int, max_level
             shapes.append((h, w))
         k += 1
     return shapes
-
-
-def gaussian_kernel(sigma: float) -> np.ndarray:
-    """Normalised 1-D Gaussian taps, radius ceil(3σ) (a host constant; σ is static)."""
-    radius = max(1, int(math.ceil(3.0 * sigma)))
-    x = np.arange(-radius, radius + 1, dtype=np.float64)
-    k = np.exp(-0.5 * (x / sigma) ** 2)
-    return k / k.sum()
-
-
-def _convolve_axis(img, taps: np.ndarray, axis: int):
-    """Correlate `img` with symmetric `taps` along `axis`, replicating the border pixels."""
-    r = len(taps) // 2
-    pad = [(0, 0)] * img.ndim
-    pad[axis] = (r, r)
-    padded = jnp.pad(img, pad, mode="edge")
-    n = img.shape[axis]
-    out = 0.0
-    for i, t in enumerate(taps):
-        out = out + float(t) * jnp.take(padded, jnp.arange(i, i + n), axis=axis)
-    return out
-
-
-def gaussian_blur(img, sigma: float):
-    """Separable Gaussian blur of an (H, W, C) image (σ in pixels, static); σ ≤ 0 returns `img`."""
-    if sigma <= 0:
-        return img
-    taps = gaussian_kernel(float(sigma))
-    return _convolve_axis(_convolve_axis(img, taps, 0), taps, 1)
 
 
 def _resample_axis(img, n_out: int, axis: int):

@@ -1,0 +1,30 @@
+"""Bilinear sampling and warping of (H, W, C) images at real positions (pixel centres at integers)."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+
+def sample_bilinear(img, x, y):
+    """img at real positions (x, y): (H, W, C) img, x and y of any shape S → (S + (C,), S mask).
+
+    Positions are clamped to the image (border replication); the mask says which lay inside.
+    """
+    h, w = img.shape[:2]
+    inside = (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
+    x = jnp.clip(x, 0, w - 1)
+    y = jnp.clip(y, 0, h - 1)
+    x0 = jnp.clip(jnp.floor(x), 0, w - 2).astype(jnp.int32)
+    y0 = jnp.clip(jnp.floor(y), 0, h - 2).astype(jnp.int32)
+    fx = (x - x0)[..., None]
+    fy = (y - y0)[..., None]
+    top = img[y0, x0] * (1 - fx) + img[y0, x0 + 1] * fx
+    bottom = img[y0 + 1, x0] * (1 - fx) + img[y0 + 1, x0 + 1] * fx
+    return top * (1 - fy) + bottom * fy, inside
+
+
+def warp_bilinear(img, flow):
+    """img(x + w) for (H, W, C) img and (H, W, 2) flow, coordinates clamped; also the in-image mask."""
+    h, w = img.shape[:2]
+    gy, gx = jnp.meshgrid(jnp.arange(h, dtype=flow.dtype), jnp.arange(w, dtype=flow.dtype), indexing="ij")
+    return sample_bilinear(img, gx + flow[..., 0], gy + flow[..., 1])
