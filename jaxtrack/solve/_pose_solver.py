@@ -9,8 +9,6 @@ adjoint gives derivatives of the solution with respect to weights, points and li
 
 from __future__ import annotations
 
-import enum
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -18,6 +16,7 @@ import lineax as lx
 import numpy as np
 import optimistix as optx
 
+from .._status import Status
 from ..geometry import (
     KinematicModel,
     part_transforms,
@@ -32,15 +31,8 @@ from ._gauss_newton import damped_gauss_newton, solve_implicit
 from ._normal_equations import line_planes, plane_normal_equations, plane_residuals_and_columns
 
 
-class PoseStatus(enum.IntEnum):
-    """Outcome of a pose solve (an int32 array inside jit)."""
-
-    OK = 0
-    MAX_STEPS = 1  # the iteration budget ran out; the pose is the last iterate
-    SOLVER_FAILED = 2  # optimistix reported a singular system or divergence; pose = initial
-    NONFINITE = 3  # the iterate became NaN/inf; pose = initial
-    TOO_FEW = 4  # fewer effective constraints than degrees of freedom (2 per correspondence)
-    INVALID_INPUT = 5  # NaN/inf in a weighted row, negative weight, or part index out of range
+# The solver reports the library-wide status codes; `PoseStatus` is kept as its old name.
+PoseStatus = Status
 
 
 class SolverConfig(eqx.Module):
