@@ -27,7 +27,10 @@ from ._lie import so3_exp as so3_exp
 from ._lie import so3_hat as so3_hat
 from ._lie import so3_log as so3_log
 from ._lie import so3_vee as so3_vee
+from ._lie import transform_point_columns as transform_point_columns
 from ._lie import transform_points as transform_points
+from ._metrics import rotation_error_deg as rotation_error_deg
+from ._metrics import translation_error as translation_error
 from ._plucker import plucker_from_ray as plucker_from_ray
 from ._plucker import point_line_distance as point_line_distance
 from ._plucker import point_line_residual as point_line_residual

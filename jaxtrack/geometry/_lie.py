@@ -201,3 +201,14 @@ def transform_points(transform, points):
     if points.ndim == transform.ndim - 1:  # one point per transform
         return jnp.einsum("...ij,...j->...i", rot, points) + trans
     return jnp.einsum("...ij,...nj->...ni", rot, points) + trans[..., None, :]
+
+
+def transform_point_columns(transform, x, y, z):
+    """T applied to points given as three coordinate arrays: returns (x', y', z').
+
+    `transform` is (4, 4) or (..., 4, 4) broadcasting against x, y, z. Keeping coordinates as separate
+    columns avoids small batched matrix products, which are slow on XLA:CPU (the solver's normal
+    equations and the rasteriser use this form).
+    """
+    T = transform
+    return tuple(T[..., i, 0] * x + T[..., i, 1] * y + T[..., i, 2] * z + T[..., i, 3] for i in range(3))

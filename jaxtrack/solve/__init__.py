@@ -1,6 +1,7 @@
 """Padded correspondence sets and the weighted Plücker-line pose solver (eq. 3-5)."""
 
 from ._correspondences import Correspondences as Correspondences
+from ._correspondences import Cue as Cue
 from ._correspondences import concatenate_correspondences as concatenate_correspondences
 from ._correspondences import correspondences_from_pixels as correspondences_from_pixels
 from ._correspondences import make_correspondences as make_correspondences

@@ -8,12 +8,23 @@ compiled solver (DESIGN.md, static shapes).
 
 from __future__ import annotations
 
+import enum
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ..geometry import Camera, pixel_rays_world, plucker_from_ray, select_camera, undistort_points
+
+
+class Cue(enum.IntEnum):
+    """Which cue produced a correspondence row (recorded per row; the solver never looks at it)."""
+
+    UNKNOWN = 0  # given by the user (e.g. `make_correspondences`)
+    REGION = 1  # contour matches of the level-set segmentation (eq. 14-15)
+    FLOW = 2  # optical flow (eq. 6-8)
+    SIFT = 3  # SIFT keypoint matches
 
 
 class Correspondences(eqx.Module):
@@ -27,6 +38,7 @@ class Correspondences(eqx.Module):
         camera: (N,) int32 camera that observed the pixel.
         pixel: (N, 2) the ideal (undistorted) pixel, kept for drawing and reprojection errors.
         weight: (N,) ≥ 0, zero for padding.
+        cue: (N,) int32 `Cue` that produced the row (for counts, plots and per-cue weights only).
     """
 
     n: jax.Array
@@ -36,6 +48,7 @@ class Correspondences(eqx.Module):
     camera: jax.Array
     pixel: jax.Array
     weight: jax.Array
+    cue: jax.Array
 
     @property
     def capacity(self) -> int:
@@ -45,13 +58,19 @@ class Correspondences(eqx.Module):
         """Number of rows with positive weight (traced scalar)."""
         return jnp.sum(self.weight > 0, axis=-1)
 
+    def count_by_cue(self, cue) -> jax.Array:
+        """Number of rows with positive weight produced by `cue` (traced scalar)."""
+        return jnp.sum((self.weight > 0) & (self.cue == cue), axis=-1)
+
     def with_weight(self, weight) -> "Correspondences":
         """The same set with new weights (e.g. a cue-weight sweep under vmap)."""
         return eqx.tree_at(lambda c: c.weight, self, jnp.asarray(weight, self.weight.dtype))
 
 
 @eqx.filter_jit
-def correspondences_from_pixels(cameras: Camera, pixel, camera_index, p_model, part, weight, undistort=True):
+def correspondences_from_pixels(
+    cameras: Camera, pixel, camera_index, p_model, part, weight, undistort: bool = True, cue=Cue.UNKNOWN
+):
     """Jittable builder: pixels (+ camera per row) and model points to a correspondence set.
 
     No checks (use `make_correspondences` at the API edge). Shapes are kept: pad first.
@@ -61,6 +80,7 @@ def correspondences_from_pixels(cameras: Camera, pixel, camera_index, p_model, p
         pixel: (N, 2) observed pixels (distorted if the camera has distortion and `undistort`).
         camera_index: (N,) int camera of each pixel (ignored for a single camera).
         p_model: (N, 3) model-frame points; part: (N,) int; weight: (N,).
+        cue: `Cue` of every row (scalar) or (N,) per row.
     """
     cam_rows = select_camera(cameras, camera_index) if cameras.K.ndim == 3 else cameras
     pixel = jnp.asarray(pixel)
@@ -76,6 +96,7 @@ def correspondences_from_pixels(cameras: Camera, pixel, camera_index, p_model, p
         camera=jnp.asarray(camera_index, jnp.int32),
         pixel=pixel,
         weight=jnp.asarray(weight, n.dtype),
+        cue=jnp.broadcast_to(jnp.asarray(cue, jnp.int32), jnp.shape(weight)),
     )
 
 
