@@ -34,3 +34,7 @@ from ._metrics import translation_error as translation_error
 from ._plucker import plucker_from_ray as plucker_from_ray
 from ._plucker import point_line_distance as point_line_distance
 from ._plucker import point_line_residual as point_line_residual
+from ._validate import checked_array as checked_array
+from ._validate import checked_image_size as checked_image_size
+from ._validate import checked_intrinsics as checked_intrinsics
+from ._validate import checked_rotation as checked_rotation

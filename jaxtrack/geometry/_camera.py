@@ -13,6 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._lie import make_transform, se3_inverse, transform_points
+from ._validate import checked_array, checked_image_size, checked_intrinsics, checked_rotation
 
 
 class Camera(eqx.Module):
@@ -37,40 +38,38 @@ class Camera(eqx.Module):
         return se3_inverse(self.T_cam_world)[..., :3, 3]
 
 
-def make_camera(K, width: int, height: int, R_cam_world=None, t_cam_world=None, dist=None, dtype=jnp.float32):
+def make_camera(
+    K, width: int, height: int, R_cam_world=None, t_cam_world=None, dist=None, dtype=jnp.float32
+) -> Camera:
     """Validated `Camera` from numpy-like inputs (world = camera when extrinsics are omitted).
 
+    Args:
+        K: (3, 3) or 9 intrinsics, fx, fy > 0, upper triangular, last row (0, 0, 1).
+        width, height: image size in pixels (whole numbers > 0).
+        R_cam_world: (3, 3) or 9 rotation world → camera (identity when None).
+        t_cam_world: (3,) translation world → camera (zero when None).
+        dist: up to 5 OpenCV coefficients (k1, k2, p1, p2, k3), zero-padded; None = ideal pinhole.
+        dtype: a floating dtype for the arrays.
+
     Raises:
-        ValueError: naming the field whose shape or values are wrong.
+        ValueError: naming the argument whose shape or values are wrong.
     """
-    K = np.asarray(K, np.float64)
-    if K.shape == (9,):
-        K = K.reshape(3, 3)
-    if K.shape != (3, 3) or not np.all(np.isfinite(K)):
-        raise ValueError(f"camera K must be a finite 3x3 matrix (or 9 values), got shape {K.shape}")
-    if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0, 0, 1]):
-        raise ValueError(f"camera K must have fx, fy > 0 and last row (0, 0, 1), got {K.tolist()}")
-    if int(width) <= 0 or int(height) <= 0:
-        raise ValueError(f"camera image size must be positive, got {width}x{height}")
-    R = np.eye(3) if R_cam_world is None else np.asarray(R_cam_world, np.float64).reshape(-1)
-    if R.size != 9:
-        raise ValueError(f"camera R_cam_world must have 9 values, got {R.size}")
-    R = R.reshape(3, 3)
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
-        raise ValueError("camera R_cam_world is not a rotation matrix (RᵀR ≠ I or det < 0)")
-    t = np.zeros(3) if t_cam_world is None else np.asarray(t_cam_world, np.float64).reshape(-1)
-    if t.shape != (3,) or not np.all(np.isfinite(t)):
-        raise ValueError(f"camera t_cam_world must be 3 finite values, got shape {t.shape}")
-    d = np.zeros(5) if dist is None else np.asarray(dist, np.float64).reshape(-1)
-    if d.size > 5 or not np.all(np.isfinite(d)):
-        raise ValueError(f"camera dist must be at most 5 finite OpenCV coefficients (k1,k2,p1,p2,k3), got {d.size}")
+    if not jnp.issubdtype(dtype, jnp.floating):
+        raise ValueError(f"make_camera: dtype must be a floating type, got {dtype!r}")
+    K = checked_intrinsics(K, "camera K")
+    width, height = checked_image_size(width, height, "camera image size")
+    R = np.eye(3) if R_cam_world is None else checked_rotation(R_cam_world, "camera R_cam_world")
+    t = np.zeros(3) if t_cam_world is None else checked_array(t_cam_world, "camera t_cam_world", size=3)
+    d = np.zeros(5) if dist is None else checked_array(dist, "camera dist").reshape(-1)
+    if d.size > 5:
+        raise ValueError(f"camera dist must be at most 5 OpenCV coefficients (k1, k2, p1, p2, k3), got {d.size}")
     d = np.concatenate([d, np.zeros(5 - d.size)])
     return Camera(
         K=jnp.asarray(K, dtype),
         T_cam_world=make_transform(jnp.asarray(R, dtype), jnp.asarray(t, dtype)),
         dist=jnp.asarray(d, dtype),
-        width=int(width),
-        height=int(height),
+        width=width,
+        height=height,
     )
 
 
@@ -90,15 +89,26 @@ def select_camera(cameras: Camera, index) -> Camera:
     return jax.tree_util.tree_map(lambda x: x[index], cameras)
 
 
-def _distort_normalized(xy, dist):
-    """OpenCV's radial-tangential model on normalised coordinates (..., 2)."""
-    k1, k2, p1, p2, k3 = dist[..., 0:1], dist[..., 1:2], dist[..., 2:3], dist[..., 3:4], dist[..., 4:5]
+def _distortion_terms(xy, dist):
+    """OpenCV's radial-tangential model at normalised coordinates xy (..., 2): the radial factor
+    (..., 1) and the tangential shift (..., 2), so that distorted = xy · radial + shift.
+
+    The one place the polynomial is written; `project_points` applies it and `undistort_points`
+    inverts it by fixed-point iteration.
+    """
+    k1, k2, p1, p2, k3 = (dist[..., i : i + 1] for i in range(5))
     x, y = xy[..., 0:1], xy[..., 1:2]
     r2 = x * x + y * y
     radial = 1 + k1 * r2 + k2 * r2**2 + k3 * r2**3
     dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
     dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-    return jnp.concatenate([x * radial + dx, y * radial + dy], axis=-1)
+    return radial, jnp.concatenate([dx, dy], axis=-1)
+
+
+def _distort_normalized(xy, dist):
+    """OpenCV's radial-tangential model on normalised coordinates (..., 2)."""
+    radial, shift = _distortion_terms(xy, dist)
+    return xy * radial + shift
 
 
 def project_points(camera: Camera, p_world):
@@ -150,13 +160,9 @@ def undistort_points(camera: Camera, px, iterations: int = 20):
     dist = camera.dist
 
     def step(_, xy):
-        k1, k2, p1, p2, k3 = (dist[..., i : i + 1] for i in range(5))
-        x, y = xy[..., 0:1], xy[..., 1:2]
-        r2 = x * x + y * y
-        radial = 1 + k1 * r2 + k2 * r2**2 + k3 * r2**3
-        dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-        dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-        return jnp.concatenate([(xy_d[..., 0:1] - dx) / radial, (xy_d[..., 1:2] - dy) / radial], axis=-1)
+        # Solve xy_d = xy · radial(xy) + shift(xy) for xy with the terms frozen at the last iterate.
+        radial, shift = _distortion_terms(xy, dist)
+        return (xy_d - shift) / radial
 
     return normalized_to_pixels(camera, jax.lax.fori_loop(0, iterations, step, xy_d))
 

@@ -14,7 +14,7 @@ that a joint's parent joints come first (topological order), which makes the pro
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import equinox as eqx
 import jax

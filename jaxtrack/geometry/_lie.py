@@ -5,7 +5,8 @@ Conventions (DESIGN.md): a twist is ξ = (v, ω) ∈ R^6, translation part first
 
 Every function takes arbitrary leading batch dimensions (it is written for one element and lifted with
 `jnp.vectorize`). `exp` and `log` are NaN-free in value and derivative at θ = 0 (Taylor branch behind a
-double `where`, as in jaxlie) and `log` stays finite up to θ = π (it goes through a unit quaternion).
+double `where`, as in jaxlie) and `log` stays finite in value and derivative up to and at θ = π (it goes
+through a unit quaternion, whose q_w is 0 there).
 """
 
 from __future__ import annotations
@@ -116,7 +117,8 @@ def rotation_to_quaternion(rot):
     )
     diag = jnp.stack([1 + trace, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22])
     k = jnp.argmax(diag)
-    q = cands[k] / (2 * jnp.sqrt(jnp.maximum(diag[k], 1e-12)))
+    # diag sums to 4 on SO(3), so its maximum is ≥ 1; the floor only keeps non-rotations finite.
+    q = cands[k] / (2 * jnp.sqrt(jnp.maximum(diag[k], jnp.finfo(rot.dtype).eps)))
     q = q / jnp.linalg.norm(q)
     return jnp.where(q[0] < 0, -q, q)
 
@@ -130,11 +132,16 @@ def so3_log(rot):
     q = rotation_to_quaternion(rot)
     qw, qv = q[0], q[1:]
     n_sq = jnp.dot(qv, qv)
-    small = n_sq < 1e-10
-    safe_n = jnp.sqrt(jnp.where(small, 1.0, n_sq))
+    # Below √eps the series' first dropped term (|q_v|⁴/5) is under eps, and the closed form's
+    # derivative would lose digits to cancellation; the series is exact to working precision there.
+    small = n_sq < jnp.sqrt(jnp.finfo(q.dtype).eps)
+    # Double where (jaxlie): each branch only ever sees arguments where it is finite, so the branch
+    # not taken cannot put NaN into the derivative: √ at |q_v| = 0 (θ = 0) and 1/q_w at q_w = 0 (θ = π).
+    safe_n = jnp.sqrt(jnp.where(small, jnp.ones_like(n_sq), n_sq))
+    safe_qw = jnp.where(small, qw, jnp.ones_like(qw))
     # θ/|q_v| = 2 atan2(|q_v|, q_w)/|q_v|; small |q_v| means q_w ≈ 1: 2/q_w (1 − |q_v|²/(3 q_w²)).
     scale = jnp.where(
-        small, 2.0 / qw * (1 - n_sq / (3 * qw**2)), 2.0 * jnp.arctan2(safe_n, qw) / safe_n
+        small, 2.0 / safe_qw * (1 - n_sq / (3 * safe_qw**2)), 2.0 * jnp.arctan2(safe_n, qw) / safe_n
     )
     return scale * qv
 
