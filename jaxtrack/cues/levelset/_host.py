@@ -1,0 +1,176 @@
+"""Host edge of the region cue: input checks, crop and raster-plan choice, compiled-program reuse."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+
+from ...geometry import (
+    Camera,
+    KinematicModel,
+    part_transforms,
+    project_points,
+    rigid_model,
+    select_camera,
+    stack_cameras,
+)
+from ...render import Mesh, RasterPlan, face_extents, plan_raster
+from ..flow import ROI_SIZES
+from ._densities import check_grid
+from ._energy import RegionParams, region_params
+from ._refine import RegionConfig, RegionProblem, RegionResult, RegionState, _refine_jit, initial_state
+
+
+def _as_rig(cameras: Camera) -> Camera:
+    return cameras if cameras.K.ndim == 3 else stack_cameras([cameras])
+
+
+def projected_boxes(mesh: Mesh, cameras: Camera, T_world_root, theta=None, model: KinematicModel | None = None) -> np.ndarray:
+    """(C, 4) pixel boxes (x_min, y_min, x_max, y_max) of the projected mesh vertices per camera."""
+    rig = _as_rig(cameras)
+    model = rigid_model(mesh.vertices.dtype) if model is None else model
+    theta = jnp.zeros((model.num_joints,), mesh.vertices.dtype) if theta is None else jnp.asarray(theta, mesh.vertices.dtype)
+    T_parts = part_transforms(model, jnp.asarray(T_world_root, mesh.vertices.dtype), theta)
+    v = np.asarray(mesh.vertices)
+    T = np.asarray(T_parts)[np.asarray(mesh.vertex_part)]
+    p_world = np.einsum("vij,vj->vi", T[:, :3, :3], v) + T[:, :3, 3]
+    boxes = []
+    for c in range(rig.K.shape[0]):
+        px, z = project_points(select_camera(rig, c), jnp.asarray(p_world, rig.K.dtype))
+        px = np.asarray(px)[np.asarray(z) > 0]
+        if len(px) == 0:
+            boxes.append([np.nan] * 4)
+        else:
+            boxes.append([px[:, 0].min(), px[:, 1].min(), px[:, 0].max(), px[:, 1].max()])
+    return np.asarray(boxes)
+
+
+def region_crop(boxes, image_shape: tuple[int, int], margin: int = 24, factor: int = 4, sizes=ROI_SIZES):
+    """One static crop size for all cameras and each camera's offset.
+
+    Each box grows by `margin` on every side; the largest need over the cameras is rounded up to the
+    next class of `sizes` (the flow cue's `ROI_SIZES`, capped at the image side) on each axis; the
+    crop is centred on each box, kept inside the image and aligned to the density grid `factor`.
+
+    Returns:
+        (offsets (C, 2) int32 (y0, x0), crop_shape (h, w)).
+
+    Raises:
+        ValueError: when a box is not finite (the object is behind a camera).
+    """
+    boxes = np.asarray(boxes, np.float64)
+    if not np.all(np.isfinite(boxes)):
+        raise ValueError("region_crop: the object is not in front of every camera (non-finite box)")
+    H, W = image_shape
+    check_grid((H, W), factor)
+
+    def side(need, n):
+        size = next((s for s in sizes if s >= need), int(need))
+        return int(min(size, n))
+
+    need_w = np.max(boxes[:, 2] - boxes[:, 0] + 1 + 2 * margin)
+    need_h = np.max(boxes[:, 3] - boxes[:, 1] + 1 + 2 * margin)
+    cw, ch = side(need_w, W), side(need_h, H)
+    cw, ch = cw - cw % factor, ch - ch % factor
+    offsets = []
+    for x0, y0, x1, y1 in boxes:
+        sy = int(np.clip((y0 + y1) / 2 - ch / 2, 0, H - ch)) // factor * factor
+        sx = int(np.clip((x0 + x1) / 2 - cw / 2, 0, W - cw)) // factor * factor
+        offsets.append([sy, sx])
+    return np.asarray(offsets, np.int32), (ch, cw)
+
+
+class RegionRefiner:
+    """Region-only pose refinement of one object seen by one or more cameras (host convenience).
+
+    Picks the crop and raster plan from the initial pose, validates inputs, carries the
+    `RegionState` from call to call (`self.state`) and re-plans the rasteriser on overflow. Calls with
+    the same crop size class and plan share one compiled program.
+
+    Args:
+        mesh: the model mesh (parts in `vertex_part`); cameras: one `Camera` or a stacked rig.
+        model: kinematic tree (rigid if None). config: `RegionConfig`; params: `RegionParams`
+            (default: `region_params` for the first crop's size).
+        margin: pixels of context around the projected model.
+    """
+
+    def __init__(self, mesh: Mesh, cameras: Camera, model: KinematicModel | None = None, config: RegionConfig = RegionConfig(),
+                 params: RegionParams | None = None, margin: int = 24, cull_backfaces: bool = False):
+        self.mesh, self.cameras = mesh, _as_rig(cameras)
+        self.model = rigid_model(mesh.vertices.dtype) if model is None else model
+        self.config, self.params, self.margin = config, params, margin
+        self.cull_backfaces = cull_backfaces
+        self.plan: RasterPlan | None = None
+        self.state: RegionState | None = None
+
+    @property
+    def num_cameras(self) -> int:
+        return self.cameras.K.shape[0]
+
+    def _replan(self, T, theta):
+        rig = self.cameras
+        ext = np.stack([face_extents(self.mesh, select_camera(rig, c), T, theta, self.model, self.cull_backfaces)
+                        for c in range(self.num_cameras)])
+        new = plan_raster(ext, margin=2.0, cull_backfaces=self.cull_backfaces)
+        if self.plan is not None:
+            caps = dict(zip(self.plan.patch_sizes, self.plan.capacities))
+            for s, c in zip(new.patch_sizes, new.capacities):
+                caps[s] = max(c, caps.get(s, 0))
+            sizes = tuple(sorted(caps))
+            new = RasterPlan(sizes, tuple(caps[s] for s in sizes), cull_backfaces=self.cull_backfaces)
+        self.plan = new
+
+    def check_images(self, images) -> np.ndarray:
+        images = np.asarray(images)
+        if images.ndim in (2, 3) and self.num_cameras == 1 and images.shape[:2] == (self.cameras.height, self.cameras.width):
+            images = images[None]
+        H, W = self.cameras.height, self.cameras.width
+        if images.ndim not in (3, 4) or images.shape[0] != self.num_cameras or images.shape[1:3] != (H, W):
+            raise ValueError(
+                f"images must have shape ({self.num_cameras}, {H}, {W}[, 3]) for this rig, got {images.shape}"
+            )
+        if images.ndim == 4 and images.shape[-1] not in (1, 3):
+            raise ValueError(f"images must have 1 or 3 channels, got {images.shape[-1]}")
+        if not np.all(np.isfinite(images)):
+            raise ValueError("images contain non-finite values")
+        return images
+
+    def __call__(self, images, T_init, theta_init=None, params: RegionParams | None = None) -> tuple[RegionResult, tuple]:
+        """Refine the pose on one frame. Returns (`RegionResult`, (offsets (C, 2), crop_shape)).
+
+        Raises:
+            ValueError: malformed images or pose, or an object behind a camera.
+        """
+        images = self.check_images(images)
+        dtype = self.cameras.K.dtype
+        T_init = np.asarray(T_init, np.float64)
+        if T_init.shape != (4, 4) or not np.all(np.isfinite(T_init)):
+            raise ValueError(f"T_init must be a finite (4, 4) pose, got shape {T_init.shape}")
+        J = self.model.num_joints
+        theta = np.zeros(J) if theta_init is None else np.asarray(theta_init, np.float64)
+        if theta.shape != (J,) or not np.all(np.isfinite(theta)):
+            raise ValueError(f"theta_init must be ({J},) finite joint angles, got shape {theta.shape}")
+        f = self.config.density_factor
+        T_j, th_j = jnp.asarray(T_init, dtype), jnp.asarray(theta, dtype)
+        offsets, crop_shape = region_crop(
+            projected_boxes(self.mesh, self.cameras, T_j, th_j, self.model), (self.cameras.height, self.cameras.width), self.margin, f
+        )
+        params = params if params is not None else self.params if self.params is not None else region_params(crop_shape, dtype)
+        if self.plan is None:
+            self._replan(T_j, th_j)
+        if self.state is None:
+            channels = (1 if images.ndim == 3 else images.shape[-1]) + int(self.config.texture)
+            self.state = initial_state(self.num_cameras, self.cameras.height, self.cameras.width, channels, f, dtype)
+        crops = np.stack([images[c, y0 : y0 + crop_shape[0], x0 : x0 + crop_shape[1]] for c, (y0, x0) in enumerate(offsets)])
+        for _ in range(3):
+            problem = RegionProblem(self.mesh, self.model, self.cameras, self.plan, self.config)
+            result = _refine_jit(problem, jnp.asarray(crops, dtype), jnp.asarray(offsets), self.state, params, T_j, th_j)
+            if int(result.status) != 7:  # Status.RENDER_OVERFLOW: re-plan from the final pose and redo
+                break
+            self._replan(result.T_world_root, result.theta)
+        self.state = result.state
+        return result, (offsets, crop_shape)
+
+    def reset(self):
+        """Forget the carried densities (e.g. after a tracking reset)."""
+        self.state = None

@@ -1,0 +1,309 @@
+"""Region-only pose refinement: {level-set iterations, shape matching, Gauss-Newton} until the pose
+settles (Section IV), for one or several cameras sharing one state χ = (ξ, Θ).
+
+Everything between the images and the pose is one jittable function, `refine_pose_region`, of
+arrays and `eqx.Module`s: the renderer draws the model straight into each camera's region of
+interest (a crop of a static size class, by shifting the principal point), Φ0 is its signed
+distance, the level set evolves from Φ0 with the carried local densities, the densities are
+re-estimated from the result, the contour matches become `Cue.REGION` correspondences (fixed
+capacity per camera, each with its model point and part from the renderer), and `solve_pose` takes a
+few Gauss-Newton steps. Cameras are a vmapped leading axis. Nothing assumes a single rigid part.
+
+`RegionRefiner` is the host edge: it validates inputs, picks the crop (`region_crop`) and raster
+plan, keeps one compiled program per crop size class and plan, and carries `RegionState`.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from ..._status import Status, first_failure, status_where
+from ...geometry import Camera, KinematicModel, se3_inverse, se3_log
+from ...image import silhouette_sdf
+from ...render import Mesh, RasterPlan, render
+from ...solve import Correspondences, Cue, SolverConfig, correspondences_from_pixels, solve_pose
+from ._densities import LocalDensities, check_grid, data_term, local_densities
+from ._energy import RegionParams, evolve, heaviside
+from ._features import feature_channels
+from ._matching import closest_point_matches, regularised_matches
+from ._redistance import contour_pixels
+
+
+class RegionConfig(eqx.Module):
+    """Static settings (they shape the compiled program).
+
+    Attributes:
+        levelset_iterations: steps of eq. 13 per outer iteration (a multiple of redistance_every).
+        redistance_every: re-distance Φ after this many steps.
+        density_factor: coarse-grid factor of the local densities (crops must be divisible by it).
+        outer_iterations: cap on {segment, match, solve} rounds per refinement.
+        solver_steps: Gauss-Newton steps per round.
+        capacity: contour correspondences per camera.
+        matching: "closest" (eq. 14) or "regularised" (eq. 15).
+        texture: add the texture channel to the colour channels.
+    """
+
+    levelset_iterations: int = eqx.field(static=True, default=10)
+    redistance_every: int = eqx.field(static=True, default=5)
+    density_factor: int = eqx.field(static=True, default=4)
+    outer_iterations: int = eqx.field(static=True, default=12)
+    solver_steps: int = eqx.field(static=True, default=5)
+    capacity: int = eqx.field(static=True, default=512)
+    matching: str = eqx.field(static=True, default="closest")
+    texture: bool = eqx.field(static=True, default=True)
+
+    def __check_init__(self):
+        if self.matching not in ("closest", "regularised"):
+            raise ValueError(f"RegionConfig.matching must be 'closest' or 'regularised', got {self.matching!r}")
+        if self.redistance_every < 1 or self.levelset_iterations < self.redistance_every:
+            raise ValueError("RegionConfig: need levelset_iterations ≥ redistance_every ≥ 1")
+        if self.outer_iterations < 1 or self.capacity < 1 or self.density_factor < 1:
+            raise ValueError("RegionConfig: outer_iterations, capacity and density_factor must be ≥ 1")
+
+
+class RegionState(eqx.Module):
+    """What the region cue carries from frame to frame (full-frame coordinates, per camera).
+
+    Attributes:
+        phi: (C, H, W) the last segmentation Φ (inside its crop; −1 elsewhere).
+        densities: `LocalDensities` with (C, 2, H/f, W/f, K) fields on the full frame's coarse grid.
+        has_densities: (C,) bool, densities were estimated (else the first round estimates them from Φ0).
+    """
+
+    phi: jax.Array
+    densities: LocalDensities
+    has_densities: jax.Array
+
+
+def initial_state(num_cameras: int, height: int, width: int, channels: int, factor: int = 4, dtype=jnp.float32) -> RegionState:
+    """An empty `RegionState` (no densities yet)."""
+    check_grid((height, width), factor)
+    shape = (num_cameras, 2, height // factor, width // factor, channels)
+    return RegionState(
+        phi=-jnp.ones((num_cameras, height, width), dtype),
+        densities=LocalDensities(jnp.zeros(shape, dtype), jnp.ones(shape, dtype)),
+        has_densities=jnp.zeros((num_cameras,), bool),
+    )
+
+
+class RegionResult(eqx.Module):
+    """Outcome of `refine_pose_region`.
+
+    Attributes:
+        T_world_root: (4, 4) refined root pose; theta: (J,) refined joint angles.
+        status: int32 `Status` (OK, MAX_STEPS if it did not settle, RENDER_OVERFLOW, OUT_OF_VIEW, ...).
+        iterations: int32 outer rounds run.
+        num_matches: int32 contour correspondences with weight in the last round.
+        correspondences: the last round's `Cue.REGION` set (capacity C x `RegionConfig.capacity`).
+        state: the updated `RegionState`.
+        phi0: (C, h, w) the model's signed distance at the final pose's last render (crop).
+        phi: (C, h, w) the last segmentation (crop).
+    """
+
+    T_world_root: jax.Array
+    theta: jax.Array
+    status: jax.Array
+    iterations: jax.Array
+    num_matches: jax.Array
+    correspondences: Correspondences
+    state: RegionState
+    phi0: jax.Array
+    phi: jax.Array
+
+
+def crop_camera(camera: Camera, offset, crop_shape: tuple[int, int]) -> Camera:
+    """The camera seeing only the crop at `offset` = (y0, x0): principal point shifted (jittable)."""
+    K = camera.K.at[..., 0, 2].add(-offset[..., 1].astype(camera.K.dtype))
+    K = K.at[..., 1, 2].add(-offset[..., 0].astype(camera.K.dtype))
+    return Camera(K, camera.T_cam_world, camera.dist, width=crop_shape[1], height=crop_shape[0])
+
+
+def _crop(a, offset, crop_shape):
+    zero = jnp.zeros((), jnp.int32)
+    start = (offset[0].astype(jnp.int32), offset[1].astype(jnp.int32)) + (zero,) * (a.ndim - 2)
+    return jax.lax.dynamic_slice(a, start, tuple(crop_shape) + a.shape[2:])
+
+
+def _paste(full, part, offset):
+    zero = jnp.zeros((), jnp.int32)
+    start = (offset[0].astype(jnp.int32), offset[1].astype(jnp.int32)) + (zero,) * (part.ndim - 2)
+    return jax.lax.dynamic_update_slice(full, part, start)
+
+
+def silhouette_contour(silhouette):
+    """(H, W) bool inner contour of a silhouette, without the crop's border rows and columns
+    (a silhouette cut by the crop has no contour there)."""
+    contour = silhouette & contour_pixels(jnp.where(silhouette, 1.0, -1.0))
+    h, w = silhouette.shape
+    yy, xx = jnp.meshgrid(jnp.arange(h), jnp.arange(w), indexing="ij")
+    return contour & (yy > 0) & (yy < h - 1) & (xx > 0) & (xx < w - 1)
+
+
+def _select_slots(mask, capacity: int):
+    """Flat indices (capacity,) of up to `capacity` True pixels spread evenly, −1 for empty slots."""
+    flat = mask.reshape(-1)
+    rank = jnp.cumsum(flat) - 1
+    count = jnp.sum(flat)
+    slot = (rank * capacity) // jnp.maximum(count, capacity)
+    slot = jnp.where(flat, slot, capacity)
+    return jnp.full((capacity,), -1, jnp.int32).at[slot].set(jnp.arange(flat.size, dtype=jnp.int32), mode="drop")
+
+
+def contour_matches(phi0, phi, silhouette, p_model_img, part_img, params: RegionParams, capacity: int, matching: str = "closest"):
+    """Matched contour points of one camera (crop coordinates), padded to `capacity`. Jittable.
+
+    Args:
+        phi0: (h, w) Φ0, the model's signed distance; phi: (h, w) the segmentation.
+        silhouette: (h, w) bool model silhouette; p_model_img (h, w, 3), part_img (h, w): renderer buffers.
+        params: min_match, max_match, alpha_match.
+
+    Returns:
+        (pixel (capacity, 2) x, y of the contour point where its model point projects, target
+        (capacity, 2) the matched point on Φ's zero level, p_model (capacity, 3), part (capacity,),
+        weight (capacity,): 1 for a usable match, 0 for padding, zero-length and outlier matches).
+    """
+    if matching == "closest":
+        d = closest_point_matches(phi0, phi)
+    else:
+        d = regularised_matches(phi0, phi, params.alpha_match)
+    h, w = phi.shape
+    idx = _select_slots(silhouette_contour(silhouette), capacity)
+    valid = idx >= 0
+    safe = jnp.where(valid, idx, 0)
+    pixel = jnp.stack([safe % w, safe // w], -1).astype(phi.dtype)
+    dvec = d.reshape(-1, 2)[safe]
+    length = jnp.sqrt(jnp.sum(dvec**2, -1))
+    usable = valid & (length >= params.min_match) & (length <= params.max_match) & jnp.all(jnp.isfinite(dvec), -1)
+    weight = usable.astype(phi.dtype)
+    return pixel, pixel + dvec, p_model_img.reshape(-1, 3)[safe], part_img.reshape(-1)[safe], weight
+
+
+def segment(features, phi0, phi_init, densities: LocalDensities, params: RegionParams, config: RegionConfig = RegionConfig()):
+    """Level-set segmentation of one crop (eq. 11-13) with the given densities; then new densities.
+
+    Args:
+        features: (h, w, K) feature crop; phi0: (h, w) shape prior; phi_init: (h, w) start.
+        densities: `LocalDensities` (2, h/f, w/f, K) used for this round's data term.
+
+    Returns:
+        (Φ (h, w), `LocalDensities` re-estimated from H(Φ)).
+    """
+    f = config.density_factor
+    force = data_term(features, densities, f)
+    phi = evolve(phi_init, phi0, force, params, config.levelset_iterations, config.redistance_every)
+    new = local_densities(features, heaviside(phi, params.epsilon), params.rho, params.kappa, params.sigma_min, f)
+    return phi, new
+
+
+class RegionProblem(eqx.Module):
+    """The static side of a refinement: model, mesh, cameras, raster plan and settings."""
+
+    mesh: Mesh
+    model: KinematicModel
+    cameras: Camera  # stacked (C on the leading axis)
+    plan: RasterPlan = eqx.field(static=True)
+    config: RegionConfig = eqx.field(static=True)
+
+
+@eqx.debug.assert_max_traces(max_traces=None)  # counts traces (`eqx.debug.get_num_traces`), never fails
+def refine_pose_region(problem: RegionProblem, images, offsets, state: RegionState, params: RegionParams, T_init, theta_init):
+    """Region-only refinement of χ = (ξ, Θ) on one frame of C cameras. Jittable, pure.
+
+    Args:
+        problem: mesh, kinematic model, stacked cameras (C), raster plan and `RegionConfig`.
+        images: (C, h, w, 3) or (C, h, w) crops of the frames (0-255) at `offsets`.
+        offsets: (C, 2) int32 (y0, x0) of each crop in its full frame (multiples of density_factor).
+        state: `RegionState` carried from the previous frame.
+        params: `RegionParams`.
+        T_init: (4, 4) initial root pose (model → world); theta_init: (J,) initial joint angles.
+
+    Returns:
+        `RegionResult`.
+    """
+    config, model, mesh = problem.config, problem.model, problem.mesh
+    f = config.density_factor
+    crop_shape = images.shape[1:3]
+    check_grid(crop_shape, f)
+    dtype = T_init.dtype
+    features = jax.vmap(lambda im: feature_channels(im, config.texture))(images).astype(dtype)
+    cams = crop_camera(problem.cameras, offsets, crop_shape)
+    coarse_shape = (crop_shape[0] // f, crop_shape[1] // f)
+    # (2, Hc, Wc, K) per camera → crop on the coarse grid → back to (2, hc, wc, K).
+    dens0 = jax.vmap(lambda m, off: jnp.moveaxis(_crop(jnp.moveaxis(m, 0, 2), off // f, coarse_shape), 2, 0))
+    carried = LocalDensities(dens0(state.densities.mean, offsets), dens0(state.densities.var, offsets))
+    solver = SolverConfig(max_steps=config.solver_steps)
+    num_cams = offsets.shape[0]
+
+    def per_camera(cam, feats, phi_prev, dens, has_dens, first, T, theta):
+        out = render(mesh, cam, T, theta, model, problem.plan)
+        sil = out.face_id >= 0
+        phi0 = silhouette_sdf(sil).astype(dtype)
+        own = local_densities(feats, heaviside(phi0, params.epsilon), params.rho, params.kappa, params.sigma_min, f)
+        dens = jax.tree.map(lambda a, b: jnp.where(has_dens, a, b), dens, own)
+        phi, new_dens = segment(feats, phi0, jnp.where(first, phi0, phi_prev), dens, params, config)
+        matches = contour_matches(phi0, phi, sil, out.p_model, out.part_id, params, config.capacity, config.matching)
+        return phi0, phi, new_dens, matches, out.overflow, jnp.any(sil)
+
+    def round_(carry):
+        T, theta, phi, dens, has_dens, it, _, status, _, _, _ = carry
+        phi0, phi, dens, (pixel, _target, p_model, part, weight), overflow, visible = jax.vmap(
+            per_camera, in_axes=(0, 0, 0, 0, 0, None, None, None)
+        )(cams, features, phi, dens, has_dens, it == 0, T, theta)
+        target = _target + offsets[:, None, ::-1].astype(dtype)
+        cam_index = jnp.broadcast_to(jnp.arange(num_cams, dtype=jnp.int32)[:, None], weight.shape)
+        corr = correspondences_from_pixels(
+            problem.cameras, target.reshape(-1, 2), cam_index.reshape(-1), p_model.reshape(-1, 3), part.reshape(-1),
+            weight.reshape(-1), undistort=False, cue=Cue.REGION,
+        )
+        sol = solve_pose(model, corr, T, theta, solver)
+        moved = se3_log(sol.T_world_root @ se3_inverse(T))
+        settled = (
+            (jnp.linalg.norm(moved[3:]) < params.settle_rotation)
+            & (jnp.linalg.norm(moved[:3]) < params.settle_translation)
+            & jnp.all(jnp.abs(sol.theta - theta) < params.settle_rotation)
+        )
+        # No usable match at all means the contours agree: the pose has settled, not failed.
+        no_matches = sol.status == Status.TOO_FEW
+        solve_status = jnp.where(no_matches | (sol.status == Status.MAX_STEPS), Status.OK, sol.status)
+        frame_status = first_failure(
+            status_where(~jnp.any(visible), Status.OUT_OF_VIEW, Status.OK),
+            solve_status,
+            status_where(jnp.any(overflow), Status.RENDER_OVERFLOW, Status.OK),
+        )
+        return (sol.T_world_root, sol.theta, phi, dens, jnp.ones_like(has_dens), it + 1, settled | no_matches, frame_status, corr, phi0, jnp.sum(weight > 0))
+
+    def cond(carry):
+        it, settled, status = carry[5], carry[6], carry[7]
+        return (it < config.outer_iterations) & ~settled & ((status == Status.OK) | (status == Status.RENDER_OVERFLOW))
+
+    rows = num_cams * config.capacity
+    empty = Correspondences(
+        n=jnp.zeros((rows, 3), dtype), m=jnp.zeros((rows, 3), dtype), p_model=jnp.zeros((rows, 3), dtype),
+        part=jnp.zeros((rows,), jnp.int32), camera=jnp.zeros((rows,), jnp.int32), pixel=jnp.zeros((rows, 2), dtype),
+        weight=jnp.zeros((rows,), dtype), cue=jnp.full((rows,), int(Cue.REGION), jnp.int32),
+    )
+    phi_start = jnp.zeros((num_cams,) + tuple(crop_shape), dtype)
+    carried = jax.tree.map(lambda a: a.astype(dtype), carried)
+    init = (
+        T_init, theta_init.astype(dtype), phi_start, carried, state.has_densities, jnp.zeros((), jnp.int32),
+        jnp.zeros((), bool), jnp.asarray(Status.OK, jnp.int32), empty, phi_start, jnp.zeros((), jnp.int32),
+    )
+    T, theta, phi, dens, _, it, settled, status, corr, phi0, num_matches = jax.lax.while_loop(cond, round_, init)
+    status = first_failure(status, status_where(settled, Status.OK, Status.MAX_STEPS))
+
+    # Carry the segmentation and densities in full-frame coordinates.
+    new_phi = jax.vmap(lambda full, part, off: _paste(jnp.full_like(full, -1.0), part, off))(state.phi.astype(dtype), phi, offsets)
+    paste_dens = jax.vmap(lambda full, part, off: jnp.moveaxis(_paste(jnp.moveaxis(full, 0, 2), jnp.moveaxis(part, 0, 2), off // f), 2, 0))
+    new_state = RegionState(
+        phi=new_phi,
+        densities=LocalDensities(
+            paste_dens(state.densities.mean.astype(dtype), dens.mean, offsets), paste_dens(state.densities.var.astype(dtype), dens.var, offsets)
+        ),
+        has_densities=jnp.ones_like(state.has_densities),
+    )
+    return RegionResult(T, theta, status.astype(jnp.int32), it, num_matches.astype(jnp.int32), corr, new_state, phi0, phi)
+
+
+_refine_jit = eqx.filter_jit(refine_pose_region)
