@@ -57,3 +57,28 @@ def test_reads_the_middlebury_and_yosemite_ground_truth(shared_data):
             assert not known.all()  # these mark unknown flow (DATA README)
     yos = read_flo(shared_data / "flow" / "Yosemite" / "correct_yos.flo")
     assert yos.shape == (252, 316, 2)
+
+
+def test_truncated_files_bad_paths_and_degenerate_metrics(tmp_path):
+    flow = np.ones((3, 4, 2), np.float32)
+    path = write_flo(tmp_path / "new" / "a.flo", flow)  # missing parent folders are created
+    data = path.read_bytes()
+    (tmp_path / "cut.flo").write_bytes(data[:-5])
+    with pytest.raises(ValueError, match="cut.flo: header says 4x3 \\(108 bytes\\), file has 103 bytes"):
+        read_flo(tmp_path / "cut.flo")
+    (tmp_path / "tiny.flo").write_bytes(data[:6])
+    with pytest.raises(ValueError, match="tiny.flo: too short"):
+        read_flo(tmp_path / "tiny.flo")
+    with pytest.raises(ValueError, match="write_flo: path: .* is a folder"):
+        write_flo(tmp_path / "new", flow)
+    with pytest.raises(ValueError, match="write_flo: flow must have shape"):
+        write_flo(tmp_path / "e.flo", np.zeros((0, 4, 2)))
+    unknown = np.full((3, 4, 2), 2e9)
+    with pytest.raises(ValueError, match="no pixel has known ground truth"):
+        flow_errors(flow, unknown)
+    with pytest.raises(ValueError, match="mask must have shape \\(3, 4\\)"):
+        flow_errors(flow, flow, mask=np.ones((4, 3), bool))
+    with pytest.raises(ValueError, match="max_flow must be a finite number > 0"):
+        flow_to_colour(flow, max_flow=0.0)
+    with pytest.raises(ValueError, match="flow_to_colour: flow must have shape"):
+        flow_to_colour(flow[..., 0])

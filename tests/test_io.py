@@ -101,10 +101,215 @@ def test_teabox_model_covers_the_box_at_ground_truth(shared_data):
         border = np.concatenate([img[:5].reshape(-1, 3), img[-5:].reshape(-1, 3), img[:, :5].reshape(-1, 3), img[:, -5:].reshape(-1, 3)])
         dist = np.linalg.norm(img.astype(float) - np.median(border, axis=0), axis=-1)
         mask = (dist > 12).astype(np.uint8)
-        n, labels, stats, _ = cv2.connectedComponentsWithStats(mask)
+        _n, labels, stats, _ = cv2.connectedComponentsWithStats(mask)
         blob = (labels == (1 + np.argmax(stats[1:, cv2.CC_STAT_AREA]))).astype(np.uint8)
         hull = cv2.convexHull(cv2.findNonZero(blob))
         box = cv2.fillConvexPoly(np.zeros_like(blob), hull, 1).astype(bool)
         sil = np.asarray(renderer(view.T_cam_obj[1][frame]).silhouette)
         ious.append((sil & box).sum() / (sil | box).sum())
     assert min(ious) >= 0.9, ious
+
+
+def _gt_entry(T, obj_id=1):
+    return [{"obj_id": obj_id, "cam_R_m2c": np.asarray(T)[:3, :3].ravel().tolist(), "cam_t_m2c": np.asarray(T)[:3, 3].tolist()}]
+
+
+def _edit_json(path, edit):
+    data = json.loads(path.read_text())
+    edit(data)
+    path.write_text(json.dumps(data))
+
+
+def test_ground_truth_pairs_with_images_by_id_and_ids_may_have_gaps(tmp_path):
+    _K, poses = _write_small_sequence(tmp_path, frames=4)
+    cam = tmp_path / "000000"
+    # Drop frame 1 everywhere: ids 0, 2, 3 remain (legal in BOP); poses must follow their ids.
+    (cam / "rgb" / "000001.png").unlink()
+    for name in ("scene_gt.json", "scene_camera.json"):
+        _edit_json(cam / name, lambda d: d.pop("1"))
+    view = read_sequence(tmp_path).views[0]
+    assert view.frame_ids == [0, 2, 3]
+    assert [p.name for p in view.frame_paths] == ["000000.png", "000002.png", "000003.png"]
+    np.testing.assert_allclose(view.T_cam_obj[1], poses[[0, 2, 3]])
+    # Images without ground truth are legal: their poses are unknown (NaN), the others stay in place.
+    _edit_json(cam / "scene_gt.json", lambda d: d.pop("2"))
+    view = read_sequence(tmp_path).views[0]
+    assert np.isnan(view.T_cam_obj[1][1]).all()
+    np.testing.assert_allclose(view.T_cam_obj[1][[0, 2]], poses[[0, 3]])
+
+
+def test_a_missing_image_is_named_not_shifted_over(tmp_path):
+    _write_small_sequence(tmp_path, frames=4)
+    (tmp_path / "000000" / "rgb" / "000002.png").unlink()
+    with pytest.raises(SequenceError, match="scene_camera.json: .*no image for frame\\(s\\) 2 .*missing 000002.png"):
+        read_sequence(tmp_path)
+    _edit_json(tmp_path / "000000" / "scene_camera.json", lambda d: d.pop("2"))
+    with pytest.raises(SequenceError, match="scene_gt.json: 4 frames of ground truth for 3 images.*missing 000002.png"):
+        read_sequence(tmp_path)
+
+
+def test_first_frame_is_the_smallest_id(tmp_path):
+    _, poses = _write_small_sequence(tmp_path, frames=3)
+    cam = tmp_path / "000000"
+    (cam / "rgb" / "000000.png").unlink()
+    for name in ("scene_gt.json", "scene_camera.json"):
+        _edit_json(cam / name, lambda d: d.pop("0"))
+    view = read_sequence(tmp_path).views[0]
+    assert view.frame_ids == [1, 2]
+    np.testing.assert_allclose(view.T_cam_obj[1][0], poses[1])
+    _edit_json(cam / "scene_gt.json", lambda d: d.pop("1"))
+    with pytest.raises(SequenceError, match="scene_gt.json: no entry for frame 1 \\(the initial pose; first image 000001.png\\)"):
+        read_sequence(tmp_path)
+
+
+def test_frames_of_another_size_are_named(tmp_path):
+    _write_small_sequence(tmp_path)
+    odd = tmp_path / "000000" / "rgb" / "000002.png"
+    cv2.imwrite(str(odd), np.zeros((120, 160, 3), np.uint8))
+    with pytest.raises(SequenceError, match="000002.png: 160x120 pixels, but frame 0 \\(000000.png\\) is 320x240"):
+        read_sequence(tmp_path)
+
+
+def test_calibration_and_rotations_are_validated_by_file_and_field(tmp_path):
+    _write_small_sequence(tmp_path)
+    cam = tmp_path / "000000"
+    original = {name: (cam / name).read_text() for name in ("scene_camera.json", "scene_gt.json")}
+
+    def expect(name, edit, message):
+        for n, text in original.items():
+            (cam / n).write_text(text)
+        _edit_json(cam / name, edit)
+        with pytest.raises(SequenceError, match=message):
+            read_sequence(tmp_path)
+
+    def set_field(frame, key, value, obj=None):
+        def edit(d):
+            (d[frame][obj] if obj is not None else d[frame])[key] = value
+        return edit
+
+    K2 = [[510.0, 0, 159.5], [0, 500, 119.5], [0, 0, 1]]
+    expect("scene_camera.json", set_field("2", "cam_K", np.ravel(K2).tolist()),
+           "scene_camera.json: frame 2 field 'cam_K' .* differs from frame 0's")
+    expect("scene_camera.json", set_field("0", "cam_K", [0.0] * 9), "scene_camera.json: frame 0 field 'cam_K' must have focal lengths")
+    expect("scene_camera.json", set_field("1", "cam_K", [500, 0, 10, 0, 500, 10, 0, 0, 0]), "frame 1 field 'cam_K' must be upper triangular")
+    expect("scene_camera.json", set_field("1", "cam_K", [500, 0, 10]), "frame 1 field 'cam_K' must hold 9 values")
+    expect("scene_camera.json", set_field("0", "cam_R_w2c", [1, 0, 0, 0, 1, 0, 0, 0, -1]),
+           "scene_camera.json: frame 0 field 'cam_R_w2c' is not a rotation matrix")
+    expect("scene_camera.json", set_field("1", "cam_t_w2c", [0, "x", 0]), "frame 1 field 'cam_t_w2c' must be numeric")
+    expect("scene_gt.json", set_field("1", "cam_R_m2c", (2 * np.eye(3)).ravel().tolist(), obj=0),
+           "scene_gt.json: frame 1 object 1 field 'cam_R_m2c' is not a rotation matrix")
+    expect("scene_gt.json", set_field("1", "cam_t_m2c", [0, 0, None], obj=0), "frame 1 object 1 field 'cam_t_m2c' must be finite")
+    expect("scene_gt.json", lambda d: d["1"].append(d["1"][0]), "frame 1 has two instances of obj_id 1")
+    expect("scene_gt.json", lambda d: d.update({"x1": []}), "scene_gt.json: key 'x1' is not a frame id")
+    expect("scene_gt.json", set_field("2", "obj_id", 7, obj=0), "obj_id 7 has no mesh models/obj_000007")
+    expect("scene_gt.json", lambda d: d.update({"1": {"obj_id": 1}}), "frame 1 must hold a list of objects")
+    expect("scene_camera.json", lambda d: d.pop("1"), "scene_camera.json: no entry for frame 1 \\(000001.png\\)")
+
+
+def test_read_frame_names_an_unreadable_image(tmp_path):
+    _write_small_sequence(tmp_path)
+    view = read_sequence(tmp_path).views[0]
+    view.frame_paths[1].write_bytes(b"not a png")
+    with pytest.raises(SequenceError, match="000001.png: cannot read image"):
+        view.read_frame(1)
+    cv2.imwrite(str(view.frame_paths[2]), np.zeros((10, 10), np.uint8))
+    with pytest.raises(SequenceError, match="000002.png: 10x10 pixels, the camera's frames are 320x240"):
+        view.read_frame(2)
+    with pytest.raises(IndexError, match="frame index 5 out of range"):
+        view.read_frame(5)
+
+
+def test_image_reader_and_writer(tmp_path):
+    from jaxtrack.io import read_image, write_image
+
+    rgb = np.zeros((6, 8, 3), np.uint8)
+    rgb[..., 0] = 200  # red
+    path = write_image(tmp_path / "new" / "deeper" / "a.png", rgb)  # parent folders are created
+    assert read_image(path)[0, 0].tolist() == [200, 0, 0]
+    assert read_image(path, "rgb", np.float32).dtype == np.float32
+    assert read_image(path, "grey").shape == (6, 8)
+    write_image(tmp_path / "g.png", rgb[..., 0])
+    assert read_image(tmp_path / "g.png", "native").shape == (6, 8)
+    assert read_image(tmp_path / "g.png", "rgb").shape == (6, 8, 3)
+    with pytest.raises(FileNotFoundError, match="missing.png: image file not found"):
+        read_image(tmp_path / "missing.png")
+    (tmp_path / "bad.png").write_bytes(b"\x89PNG garbage")
+    with pytest.raises(ValueError, match="bad.png: cannot read image"):
+        read_image(tmp_path / "bad.png")
+    with pytest.raises(ValueError, match="mode must be one of"):
+        read_image(path, "bgr")
+    with pytest.raises(ValueError, match="no image writer for extension ''"):
+        write_image(tmp_path / "noext", rgb)
+    (tmp_path / "dir.png").mkdir()
+    with pytest.raises(ValueError, match="dir.png is a folder"):
+        write_image(tmp_path / "dir.png", rgb)
+    with pytest.raises(ValueError, match="g.png is a file"):
+        write_image(tmp_path / "g.png" / "x.png", rgb)
+    with pytest.raises(ValueError, match="must be uint8 or uint16"):
+        write_image(tmp_path / "f.png", rgb.astype(np.float32))
+    with pytest.raises(ValueError, match="must be \\(H, W\\) or \\(H, W, 3\\)"):
+        write_image(tmp_path / "f.png", np.zeros((4, 4, 2), np.uint8))
+
+
+def test_writers_validate_and_create_folders(tmp_path):
+    T = np.eye(4)
+    out = write_bop_results(tmp_path / "results" / "r.csv", [(1, 0, 1, 0.5, T, 0.1)])
+    assert out.is_file() and len(read_bop_results(out)) == 1
+    with pytest.raises(ValueError, match="write_bop_results: path: .* is a folder"):
+        write_bop_results(tmp_path / "results", [])
+    with pytest.raises(ValueError, match="row 0 T must be \\(4, 4\\)"):
+        write_bop_results(tmp_path / "r2.csv", [(1, 0, 1, 0.5, np.eye(3), 0.1)])
+    with pytest.raises(ValueError, match="row 0 must be"):
+        write_bop_results(tmp_path / "r2.csv", [(1, 0, 1, T, 0.1)])
+    images = np.zeros((2, 8, 8, 3))
+    with pytest.raises(ValueError, match="T_cam_obj\\[1\\] must be \\(2, 4, 4\\) for 2 images"):
+        write_camera_view(tmp_path / "cam", images, np.eye(3), {1: np.stack([T] * 3)})
+    with pytest.raises(ValueError, match="write_camera_view: K must have focal lengths"):
+        write_camera_view(tmp_path / "cam", images, np.zeros((3, 3)), {1: np.stack([T] * 2)})
+    with pytest.raises(ValueError, match="images must be \\(N, H, W\\)"):
+        write_camera_view(tmp_path / "cam", np.zeros((8, 8)), np.eye(3), {})
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(ValueError, match="file exists and is not a folder"):
+        write_camera_view(tmp_path / "file", images, np.eye(3), {})
+
+
+def test_bop_results_reader_names_the_line(tmp_path):
+    path = tmp_path / "r.csv"
+    path.write_text("scene_id,im_id,obj_id,score,R,t,time\n1,0,1,0.5,1 0 0 0 1 0 0 0 1,0 0 1,0.1\n1,x,1,0.5,1 0 0 0 1 0 0 0 1,0 0 1,0.1\n")
+    with pytest.raises(SequenceError, match="r.csv:3: malformed number"):
+        read_bop_results(path)
+    path.write_text("scene_id,im_id,obj_id,score,R,t,time\n1,0,1,0.5,2 0 0 0 1 0 0 0 1,0 0 1,0.1\n")
+    with pytest.raises(SequenceError, match="r.csv:2: R is not a rotation"):
+        read_bop_results(path)
+
+
+def test_mesh_loader_names_empty_and_unreadable_files(tmp_path):
+    (tmp_path / "empty.ply").write_bytes(b"")
+    with pytest.raises(ValueError, match="empty.ply: mesh file is empty"):
+        load_mesh(tmp_path / "empty.ply")
+    (tmp_path / "cut.ply").write_text("ply\nformat ascii 1.0\nelement vertex 3\n")
+    with pytest.raises(ValueError, match="cut.ply: "):
+        load_mesh(tmp_path / "cut.ply")
+    with pytest.raises(FileNotFoundError, match="it is a folder"):
+        load_mesh(tmp_path)
+    _write_small_sequence(tmp_path / "seq")
+    with pytest.raises(ValueError, match="scale must be a finite number > 0"):
+        load_mesh(tmp_path / "seq" / "models" / "obj_000001.ply", scale=0.0)
+
+
+def test_io_loads_opencv_and_trimesh_lazily():
+    """`import jaxtrack` (and the .flo functions) must not import OpenCV, trimesh or embree."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, jaxtrack, jaxtrack.io\n"
+        "from jaxtrack.io import read_flo\n"
+        "from jaxtrack.synth import demo_chain\n"
+        "heavy = [m for m in ('cv2', 'trimesh', 'embreex', 'skimage') if m in sys.modules]\n"
+        "assert not heavy, heavy\n"
+        "from jaxtrack.io import read_sequence\n"
+        "assert callable(read_sequence) and jaxtrack.io.load_mesh and 'read_image' in dir(jaxtrack.io)\n"
+        "assert jaxtrack.synth.PRESETS and {'cv2', 'trimesh'} <= set(sys.modules)\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=120)

@@ -1,17 +1,69 @@
-"""I/O: the BOP scene layout, the BOP results CSV, meshes, Middlebury .flo flow files."""
+"""I/O: the BOP scene layout, the BOP results CSV, meshes, images, Middlebury .flo flow files.
 
-from ._bop import CameraView as CameraView
-from ._bop import Sequence as Sequence
-from ._bop import SequenceError as SequenceError
-from ._bop import read_bop_results as read_bop_results
-from ._bop import read_camera_view as read_camera_view
-from ._bop import read_sequence as read_sequence
-from ._bop import write_bop_results as write_bop_results
-from ._bop import write_camera_view as write_camera_view
-from ._meshes import load_mesh as load_mesh
-from ._meshes import load_trimesh as load_trimesh
-from ._flo import flow_errors as flow_errors
-from ._flo import flow_to_colour as flow_to_colour
-from ._flo import known_flow_mask as known_flow_mask
-from ._flo import read_flo as read_flo
-from ._flo import write_flo as write_flo
+Names load on first use (PEP 562): OpenCV and trimesh are imported only when a reader or writer that
+needs them is touched, so `import jaxtrack` and the .flo functions stay light.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING
+
+# public name -> private module defining it
+_EXPORTS = {
+    "CameraView": "_bop",
+    "Sequence": "_bop",
+    "SequenceError": "_bop",
+    "read_bop_results": "_bop",
+    "read_camera_view": "_bop",
+    "read_sequence": "_bop",
+    "write_bop_results": "_bop",
+    "write_camera_view": "_bop",
+    "flow_errors": "_flo",
+    "flow_to_colour": "_flo",
+    "known_flow_mask": "_flo",
+    "read_flo": "_flo",
+    "write_flo": "_flo",
+    "image_size": "_images",
+    "prepare_output_file": "_images",
+    "prepare_output_folder": "_images",
+    "read_image": "_images",
+    "write_image": "_images",
+    "load_mesh": "_meshes",
+    "load_trimesh": "_meshes",
+}
+
+
+def __getattr__(name: str):
+    if name not in _EXPORTS:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f".{_EXPORTS[name]}", __name__), name)
+    globals()[name] = value  # later look-ups skip __getattr__
+    return value
+
+
+def __dir__() -> list:
+    return sorted(set(globals()) | set(_EXPORTS))
+
+
+if TYPE_CHECKING:  # static analysers and IDEs see the real definitions
+    from ._bop import CameraView as CameraView
+    from ._bop import Sequence as Sequence
+    from ._bop import SequenceError as SequenceError
+    from ._bop import read_bop_results as read_bop_results
+    from ._bop import read_camera_view as read_camera_view
+    from ._bop import read_sequence as read_sequence
+    from ._bop import write_bop_results as write_bop_results
+    from ._bop import write_camera_view as write_camera_view
+    from ._flo import flow_errors as flow_errors
+    from ._flo import flow_to_colour as flow_to_colour
+    from ._flo import known_flow_mask as known_flow_mask
+    from ._flo import read_flo as read_flo
+    from ._flo import write_flo as write_flo
+    from ._images import image_size as image_size
+    from ._images import prepare_output_file as prepare_output_file
+    from ._images import prepare_output_folder as prepare_output_folder
+    from ._images import read_image as read_image
+    from ._images import write_image as write_image
+    from ._meshes import load_mesh as load_mesh
+    from ._meshes import load_trimesh as load_trimesh

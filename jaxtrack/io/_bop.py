@@ -12,12 +12,18 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import pathlib
 
-import cv2
 import numpy as np
 
+from ..geometry import checked_array, checked_intrinsics, checked_rotation
+from ._images import image_size, prepare_output_file, prepare_output_folder, read_image, write_image
+
 MODEL_SUFFIXES = (".ply", ".obj", ".stl", ".glb", ".gltf", ".off")
+FRAME_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif")
+# Two cam_K of one camera are "the same" within this relative difference (JSON round trips of float32).
+K_RTOL = 1e-6
 
 
 class SequenceError(ValueError):
@@ -28,13 +34,17 @@ class SequenceError(ValueError):
 class CameraView:
     """One camera of a sequence: its frames and per-frame calibration / ground truth.
 
+    BOP names frames by image id (000000.png, 000001.png, ...); ids may have gaps. Frame index i of
+    every array here is the i-th image in id order, and `frame_ids[i]` is its id in the JSON files.
+
     Attributes:
         folder: the camera folder (SEQ/000000).
-        frame_paths: image file of every frame, in frame order.
-        K: (3, 3) intrinsics (of frame 0; BOP stores them per frame, checked constant).
-        T_cam_world: (4, 4) extrinsics (identity when absent).
+        frame_paths: image file of every frame, in id order.
+        frame_ids: (num_frames,) BOP image id of every frame.
+        K: (3, 3) intrinsics (BOP stores them per frame; checked equal over the sequence).
+        T_cam_world: (4, 4) extrinsics of the first frame (identity when absent).
         T_cam_obj: dict obj_id -> (num_frames, 4, 4) ground-truth poses, NaN where unknown.
-        width, height: image size.
+        width, height: image size (checked equal for every frame).
     """
 
     folder: pathlib.Path
@@ -44,16 +54,24 @@ class CameraView:
     T_cam_obj: dict
     width: int
     height: int
+    frame_ids: list = dataclasses.field(default_factory=list)
 
     def read_frame(self, index: int, gray: bool = False) -> np.ndarray:
-        """Frame `index` as float32 H×W×3 RGB (or H×W gray) in [0, 255]."""
+        """Frame `index` (position, not id) as float32 H×W×3 RGB (or H×W gray) in [0, 255].
+
+        Raises:
+            SequenceError: naming the image file when it cannot be read or its size is not the view's.
+        """
+        if not -len(self.frame_paths) <= int(index) < len(self.frame_paths):
+            raise IndexError(f"{self.folder}: frame index {index} out of range [0, {len(self.frame_paths)})")
         path = self.frame_paths[index]
-        img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR)
-        if img is None:
-            raise SequenceError(f"{path}: cannot read image")
-        if not gray:
-            img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
-        return img.astype(np.float32)
+        try:
+            img = read_image(path, "grey" if gray else "rgb", np.float32)
+        except (FileNotFoundError, ValueError) as e:
+            raise SequenceError(str(e)) from e
+        if img.shape[:2] != (self.height, self.width):
+            raise SequenceError(f"{path}: {img.shape[1]}x{img.shape[0]} pixels, the camera's frames are {self.width}x{self.height}")
+        return img
 
 
 @dataclasses.dataclass
@@ -73,72 +91,163 @@ def _load_json(path: pathlib.Path):
     if not path.is_file():
         raise SequenceError(f"{path}: missing")
     try:
-        return json.loads(path.read_text())
+        data = json.loads(path.read_text())
     except json.JSONDecodeError as e:
         raise SequenceError(f"{path}: malformed JSON ({e.msg} at line {e.lineno})") from e
+    if not isinstance(data, dict):
+        raise SequenceError(f"{path}: expected a JSON object keyed by frame id, got {type(data).__name__}")
+    out = {}
+    for key, value in data.items():
+        if not key.isdigit():
+            raise SequenceError(f"{path}: key {key!r} is not a frame id (a non-negative integer)")
+        out[int(key)] = value
+    return dict(sorted(out.items()))
 
 
-def _matrix(entry, key, shape, path, frame):
-    if key not in entry:
-        raise SequenceError(f"{path}: frame {frame} has no field '{key}'")
-    arr = np.asarray(entry[key], np.float64)
-    if arr.size != int(np.prod(shape)) or not np.all(np.isfinite(arr)):
-        raise SequenceError(f"{path}: frame {frame} field '{key}' must hold {int(np.prod(shape))} finite numbers, got {arr.size}")
-    return arr.reshape(shape)
+def _field(entry, key, path, frame, size, what=""):
+    """Field `key` of a JSON entry as `size` finite numbers; errors name file, frame and field."""
+    name = f"{path}: frame {frame}{what} field '{key}'"
+    if not isinstance(entry, dict) or key not in entry:
+        raise SequenceError(f"{path}: frame {frame}{what} has no field '{key}'")
+    try:
+        return checked_array(entry[key], name, size=size)
+    except ValueError as e:
+        raise SequenceError(str(e)) from e
+
+
+def _rotation(entry, key, path, frame, what=""):
+    R = _field(entry, key, path, frame, 9, what)
+    try:
+        return checked_rotation(R, f"{path}: frame {frame}{what} field '{key}'")
+    except ValueError as e:
+        raise SequenceError(str(e)) from e
 
 
 def _transform(R, t):
     T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, t
+    T[:3, :3], T[:3, 3] = np.asarray(R).reshape(3, 3), t
     return T
 
 
-def read_camera_view(folder: pathlib.Path) -> CameraView:
+def _frame_images(image_dir: pathlib.Path) -> dict:
+    """Image id -> file, from BOP frame names (000000.png, ...), in id order."""
+    images: dict = {}
+    for p in sorted(image_dir.iterdir()):
+        if p.suffix.lower() not in FRAME_SUFFIXES:
+            continue
+        if not p.stem.isdigit():
+            raise SequenceError(f"{p}: frame images must be named by image id (000000{p.suffix}, 000001{p.suffix}, ...)")
+        if int(p.stem) in images:
+            raise SequenceError(f"{image_dir}: two images for frame {int(p.stem)}: {images[int(p.stem)].name} and {p.name}")
+        images[int(p.stem)] = p
+    if not images:
+        raise SequenceError(f"{image_dir}: no images ({', '.join(FRAME_SUFFIXES)})")
+    return dict(sorted(images.items()))
+
+
+def _missing_images(json_path, ids, images: dict, image_dir: pathlib.Path, count_msg: str) -> None:
+    """Error naming the image files of frames that `json_path` describes but that do not exist."""
+    missing = [i for i in ids if i not in images]
+    if missing:
+        first = next(iter(images.values()))
+        names = ", ".join(f"{i:0{len(first.stem)}d}{first.suffix}" for i in missing[:5]) + (", ..." if len(missing) > 5 else "")
+        raise SequenceError(f"{json_path}: {count_msg}; no image for frame(s) {', '.join(map(str, missing[:5]))} "
+                            f"in {image_dir} (missing {names})")
+
+
+def read_camera_view(folder: str | os.PathLike) -> CameraView:
+    """One camera folder of a BOP sequence (see the module docstring for the layout).
+
+    Ground truth and calibration are paired with images by image id; a JSON entry whose image is
+    missing, a frame of another size, a cam_K that changes between frames, a zero/singular K or a
+    cam_R_* that is not a rotation is an error naming the file, frame and field.
+
+    Raises:
+        SequenceError: as above.
+    """
     folder = pathlib.Path(folder)
     image_dir = next((folder / d for d in ("rgb", "gray") if (folder / d).is_dir()), None)
     if image_dir is None:
         raise SequenceError(f"{folder}: no rgb/ or gray/ image folder")
-    frames = sorted(p for p in image_dir.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg", ".tif"))
-    if not frames:
-        raise SequenceError(f"{image_dir}: no images")
+    images = _frame_images(image_dir)
+    ids = list(images)
+    first = ids[0]
+
     cam_path = folder / "scene_camera.json"
     cams = _load_json(cam_path)
-    if str(0) not in cams:
-        raise SequenceError(f"{cam_path}: no entry for frame 0")
-    K = _matrix(cams["0"], "cam_K", (3, 3), cam_path, 0)
-    R = _matrix(cams["0"], "cam_R_w2c", (3, 3), cam_path, 0) if "cam_R_w2c" in cams["0"] else np.eye(3)
-    t = _matrix(cams["0"], "cam_t_w2c", (3,), cam_path, 0) if "cam_t_w2c" in cams["0"] else np.zeros(3)
-    if len(cams) not in (1, len(frames)):
-        raise SequenceError(f"{cam_path}: {len(cams)} entries for {len(frames)} frames in {image_dir}")
+    if first not in cams:
+        raise SequenceError(f"{cam_path}: no entry for frame {first} (the first image, {images[first].name})")
+    _missing_images(cam_path, cams, images, image_dir, f"{len(cams)} entries for {len(images)} images")
+    if len(cams) > 1:  # per-frame calibration (BOP): every image needs its entry
+        lacking = [i for i in ids if i not in cams]
+        if lacking:
+            raise SequenceError(f"{cam_path}: no entry for frame {lacking[0]} ({images[lacking[0]].name}); "
+                                f"give one entry per image or only the first")
+    K = None
+    for frame, entry in cams.items():
+        K_frame = _field(entry, "cam_K", cam_path, frame, 9)
+        try:
+            K_frame = checked_intrinsics(K_frame, f"{cam_path}: frame {frame} field 'cam_K'")
+        except ValueError as e:
+            raise SequenceError(str(e)) from e
+        if K is None:
+            K = K_frame
+        elif not np.allclose(K_frame, K, rtol=K_RTOL, atol=0):
+            raise SequenceError(f"{cam_path}: frame {frame} field 'cam_K' {K_frame.ravel().tolist()} differs from frame "
+                                f"{first}'s {K.ravel().tolist()}; a camera must keep one K over the sequence")
+        if "cam_R_w2c" in entry:
+            _rotation(entry, "cam_R_w2c", cam_path, frame)
+        if "cam_t_w2c" in entry:
+            _field(entry, "cam_t_w2c", cam_path, frame, 3)
+    entry0 = cams[first]
+    R = _rotation(entry0, "cam_R_w2c", cam_path, first) if "cam_R_w2c" in entry0 else np.eye(3)
+    t = _field(entry0, "cam_t_w2c", cam_path, first, 3) if "cam_t_w2c" in entry0 else np.zeros(3)
+
     gt_path = folder / "scene_gt.json"
     gt = _load_json(gt_path)
-    if "0" not in gt:
-        raise SequenceError(f"{gt_path}: no entry for frame 0 (the initial pose)")
-    if len(gt) > len(frames):
-        raise SequenceError(f"{gt_path}: {len(gt)} frames of ground truth for {len(frames)} images in {image_dir}")
+    if first not in gt:
+        raise SequenceError(f"{gt_path}: no entry for frame {first} (the initial pose; first image {images[first].name})")
+    _missing_images(gt_path, gt, images, image_dir, f"{len(gt)} frames of ground truth for {len(images)} images")
+    index = {frame: i for i, frame in enumerate(ids)}
     poses: dict = {}
-    for key, objects in gt.items():
-        frame = int(key)
-        if not 0 <= frame < len(frames):
-            raise SequenceError(f"{gt_path}: frame {frame} out of range [0, {len(frames)})")
-        for obj in objects:
-            if "obj_id" not in obj:
-                raise SequenceError(f"{gt_path}: frame {frame} has an object without 'obj_id'")
-            R_m2c = _matrix(obj, "cam_R_m2c", (3, 3), gt_path, frame)
-            t_m2c = _matrix(obj, "cam_t_m2c", (3,), gt_path, frame)
-            arr = poses.setdefault(int(obj["obj_id"]), np.full((len(frames), 4, 4), np.nan))
-            arr[frame] = _transform(R_m2c, t_m2c)
-    first = cv2.imread(str(frames[0]), cv2.IMREAD_UNCHANGED)
-    if first is None:
-        raise SequenceError(f"{frames[0]}: cannot read image")
-    return CameraView(folder, frames, K, _transform(R, t), poses, first.shape[1], first.shape[0])
+    for frame, objects in gt.items():
+        if not isinstance(objects, list):
+            raise SequenceError(f"{gt_path}: frame {frame} must hold a list of objects, got {type(objects).__name__}")
+        for n, obj in enumerate(objects):
+            if not isinstance(obj, dict) or "obj_id" not in obj:
+                raise SequenceError(f"{gt_path}: frame {frame} object #{n} has no 'obj_id'")
+            try:
+                obj_id = int(obj["obj_id"])
+            except (TypeError, ValueError):
+                raise SequenceError(f"{gt_path}: frame {frame} object #{n} field 'obj_id' must be an integer, got {obj['obj_id']!r}") from None
+            what = f" object {obj_id}"
+            R_m2c = _rotation(obj, "cam_R_m2c", gt_path, frame, what)
+            t_m2c = _field(obj, "cam_t_m2c", gt_path, frame, 3, what)
+            arr = poses.setdefault(obj_id, np.full((len(ids), 4, 4), np.nan))
+            if np.isfinite(arr[index[frame]]).all():
+                raise SequenceError(f"{gt_path}: frame {frame} has two instances of obj_id {obj_id}; "
+                                    f"jaxtrack tracks one instance per object")
+            arr[index[frame]] = _transform(R_m2c, t_m2c)
+
+    # Every frame must have the first frame's size: a stray frame would break the renderer's static
+    # shapes (or, resized, every pose). Only headers are read.
+    try:
+        width, height = image_size(images[first])
+        for frame in ids[1:]:
+            size = image_size(images[frame])
+            if size != (width, height):
+                raise SequenceError(f"{images[frame]}: {size[0]}x{size[1]} pixels, but frame {first} "
+                                    f"({images[first].name}) is {width}x{height}; all frames of a camera must have one size")
+    except (FileNotFoundError, ValueError) as e:
+        raise SequenceError(str(e)) from e
+    return CameraView(folder, list(images.values()), K, _transform(R, t), poses, width, height, ids)
 
 
-def read_sequence(root) -> Sequence:
+def read_sequence(root: str | os.PathLike) -> Sequence:
     """Read a BOP-layout sequence folder (meshes are located, not loaded: see `load_mesh`).
 
     Raises:
-        SequenceError: naming the missing file, the malformed JSON or field, or mismatched counts.
+        SequenceError: naming the missing file, the malformed JSON or field, or mismatched frames.
     """
     root = pathlib.Path(root)
     if not root.is_dir():
@@ -148,7 +257,9 @@ def read_sequence(root) -> Sequence:
         raise SequenceError(f"{models_dir}: missing (the object meshes)")
     model_paths = {}
     for p in sorted(models_dir.iterdir()):
-        if p.suffix.lower() in MODEL_SUFFIXES and p.stem.startswith("obj_"):
+        if p.suffix.lower() in MODEL_SUFFIXES and p.stem.startswith("obj_") and p.stem[4:].isdigit():
+            if int(p.stem[4:]) in model_paths:
+                raise SequenceError(f"{models_dir}: two meshes for object {int(p.stem[4:])}: {model_paths[int(p.stem[4:])].name} and {p.name}")
             model_paths[int(p.stem[4:])] = p
     if not model_paths:
         raise SequenceError(f"{models_dir}: no obj_XXXXXX mesh ({', '.join(MODEL_SUFFIXES)})")
@@ -159,53 +270,104 @@ def read_sequence(root) -> Sequence:
     counts = {len(v.frame_paths) for v in views}
     if len(counts) != 1:
         raise SequenceError(f"{root}: cameras have different frame counts {sorted(counts)}")
+    for v in views[1:]:
+        if v.frame_ids != views[0].frame_ids:
+            frame = next(a for a, b in zip(v.frame_ids, views[0].frame_ids) if a != b)
+            raise SequenceError(f"{v.folder}: frame ids differ from {views[0].folder.name}'s (first difference at id {frame})")
+    for v in views:
+        for obj_id in v.T_cam_obj:
+            if obj_id not in model_paths:
+                raise SequenceError(f"{v.folder / 'scene_gt.json'}: obj_id {obj_id} has no mesh models/obj_{obj_id:06d}.*")
     return Sequence(root, model_paths, views)
 
 
-def write_camera_view(folder, images, K, T_cam_obj: dict, T_cam_world=None, gray=False):
-    """Write one camera of a sequence: images (N, H, W[, 3]) in [0, 255] RGB, K (3, 3), poses per object."""
-    folder = pathlib.Path(folder)
-    image_dir = folder / ("gray" if gray else "rgb")
-    image_dir.mkdir(parents=True, exist_ok=True)
-    T_cam_world = np.eye(4) if T_cam_world is None else np.asarray(T_cam_world)
+def write_camera_view(
+    folder: str | os.PathLike, images, K, T_cam_obj: dict, T_cam_world=None, gray: bool = False
+) -> pathlib.Path:
+    """Write one camera of a sequence in the BOP layout (frames 000000.png, ... and the two JSON files).
+
+    Args:
+        folder: the camera folder (created with its parents).
+        images: (N, H, W) or (N, H, W, 3) RGB in [0, 255] (clipped, rounded down to uint8).
+        K: (3, 3) or 9 intrinsics.
+        T_cam_obj: obj_id -> (N, 4, 4) poses in mm; frames with non-finite poses get no ground truth.
+        T_cam_world: (4, 4) extrinsics (identity when None).
+        gray: write to gray/ instead of rgb/.
+
+    Raises:
+        ValueError: naming the argument or path that is wrong.
+    """
+    images = np.asarray(images)
+    if images.ndim not in (3, 4) or (images.ndim == 4 and images.shape[3] != 3) or len(images) == 0:
+        raise ValueError(f"write_camera_view: images must be (N, H, W) or (N, H, W, 3) with N ≥ 1, got shape {images.shape}")
+    if not np.issubdtype(images.dtype, np.number):
+        raise ValueError(f"write_camera_view: images must be numeric, got dtype {images.dtype}")
+    K = checked_intrinsics(K, "write_camera_view: K")
+    n = len(images)
+    for obj_id, poses in T_cam_obj.items():
+        if np.shape(poses) != (n, 4, 4):
+            raise ValueError(f"write_camera_view: T_cam_obj[{obj_id!r}] must be ({n}, 4, 4) for {n} images, got {np.shape(poses)}")
+    T_cam_world = np.eye(4) if T_cam_world is None else checked_array(T_cam_world, "write_camera_view: T_cam_world")
+    if T_cam_world.shape != (4, 4):
+        raise ValueError(f"write_camera_view: T_cam_world must be (4, 4), got {T_cam_world.shape}")
+    checked_rotation(T_cam_world[:3, :3], "write_camera_view: T_cam_world[:3, :3]")
+    folder = prepare_output_folder(folder, "write_camera_view: folder")
+    image_dir = prepare_output_folder(folder / ("gray" if gray else "rgb"), "write_camera_view: image folder")
     cams, gts = {}, {}
     for i, img in enumerate(images):
-        img = np.clip(np.asarray(img), 0, 255).astype(np.uint8)
-        if img.ndim == 3:
-            img = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
-        cv2.imwrite(str(image_dir / f"{i:06d}.png"), img)
+        write_image(image_dir / f"{i:06d}.png", np.clip(img, 0, 255).astype(np.uint8), "write_camera_view")
         cams[str(i)] = {
-            "cam_K": np.asarray(K, float).ravel().tolist(),
+            "cam_K": K.ravel().tolist(),
             "cam_R_w2c": T_cam_world[:3, :3].ravel().tolist(),
             "cam_t_w2c": T_cam_world[:3, 3].tolist(),
             "depth_scale": 1.0,
         }
         objs = []
         for obj_id, poses in T_cam_obj.items():
-            T = np.asarray(poses[i])
+            T = np.asarray(poses[i], np.float64)
             if np.all(np.isfinite(T)):
                 objs.append({"obj_id": int(obj_id), "cam_R_m2c": T[:3, :3].ravel().tolist(), "cam_t_m2c": T[:3, 3].tolist()})
         gts[str(i)] = objs
     (folder / "scene_camera.json").write_text(json.dumps(cams, indent=1))
     (folder / "scene_gt.json").write_text(json.dumps(gts, indent=1))
+    return folder
 
 
 RESULT_HEADER = "scene_id,im_id,obj_id,score,R,t,time"
 
 
-def write_bop_results(path, rows):
-    """Write the BOP results CSV. rows: iterable of (scene_id, im_id, obj_id, score, T (4, 4) mm, time s)."""
+def write_bop_results(path: str | os.PathLike, rows) -> pathlib.Path:
+    """Write the BOP results CSV (parent folders created).
+
+    Args:
+        path: the .csv file.
+        rows: iterable of (scene_id, im_id, obj_id, score, T (4, 4) mm, time s).
+
+    Raises:
+        ValueError: naming the path, or the row and field that is malformed.
+    """
+    path = prepare_output_file(path, "write_bop_results: path")
     lines = [RESULT_HEADER]
-    for scene_id, im_id, obj_id, score, T, seconds in rows:
-        T = np.asarray(T, np.float64)
+    for n, row in enumerate(rows):
+        if len(row) != 6:
+            raise ValueError(f"write_bop_results: row {n} must be (scene_id, im_id, obj_id, score, T, time), got {len(row)} values")
+        scene_id, im_id, obj_id, score, T, seconds = row
+        T = checked_array(T, f"write_bop_results: row {n} T")
+        if T.shape != (4, 4):
+            raise ValueError(f"write_bop_results: row {n} T must be (4, 4), got {T.shape}")
         R = " ".join(f"{v:.8f}" for v in T[:3, :3].ravel())
         t = " ".join(f"{v:.6f}" for v in T[:3, 3])
         lines.append(f"{int(scene_id)},{int(im_id)},{int(obj_id)},{float(score):.6f},{R},{t},{float(seconds):.6f}")
-    pathlib.Path(path).write_text("\n".join(lines) + "\n")
+    path.write_text("\n".join(lines) + "\n")
+    return path
 
 
-def read_bop_results(path):
-    """Read a BOP results CSV into a list of (scene_id, im_id, obj_id, score, T (4, 4), time)."""
+def read_bop_results(path: str | os.PathLike) -> list:
+    """Read a BOP results CSV into a list of (scene_id, im_id, obj_id, score, T (4, 4), time).
+
+    Raises:
+        SequenceError: naming the file and line of a malformed row (field count, numbers, R not a rotation).
+    """
     path = pathlib.Path(path)
     if not path.is_file():
         raise SequenceError(f"{path}: missing")
@@ -217,9 +379,19 @@ def read_bop_results(path):
         parts = line.split(",")
         if len(parts) != 7:
             raise SequenceError(f"{path}:{n}: expected 7 comma-separated fields, got {len(parts)}")
-        R = np.array(parts[4].split(), float)
-        t = np.array(parts[5].split(), float)
+        try:
+            ids = [int(parts[0]), int(parts[1]), int(parts[2])]
+            score, seconds = float(parts[3]), float(parts[6])
+            R = np.array(parts[4].split(), float)
+            t = np.array(parts[5].split(), float)
+        except ValueError as e:
+            raise SequenceError(f"{path}:{n}: malformed number ({e})") from e
         if R.size != 9 or t.size != 3:
             raise SequenceError(f"{path}:{n}: R needs 9 values and t 3, got {R.size} and {t.size}")
-        rows.append((int(parts[0]), int(parts[1]), int(parts[2]), float(parts[3]), _transform(R.reshape(3, 3), t), float(parts[6])))
+        try:
+            R = checked_rotation(R, f"{path}:{n}: R")
+            t = checked_array(t, f"{path}:{n}: t", size=3)
+        except ValueError as e:
+            raise SequenceError(str(e)) from e
+        rows.append((*ids, score, _transform(R, t), seconds))
     return rows

@@ -6,16 +6,24 @@ Unknown flow is marked by |u| or |v| > 1e9.
 
 from __future__ import annotations
 
+import os
 import pathlib
 
 import numpy as np
+
+from ._images import prepare_output_file
 
 FLO_MAGIC = 202021.25
 UNKNOWN_FLOW = 1e9
 
 
-def read_flo(path) -> np.ndarray:
-    """(H, W, 2) float32 flow (u, v) from a .flo file; unknown entries keep their huge values."""
+def read_flo(path: str | os.PathLike) -> np.ndarray:
+    """(H, W, 2) float32 flow (u, v) from a .flo file; unknown entries keep their huge values.
+
+    Raises:
+        FileNotFoundError: naming the missing file.
+        ValueError: naming the file whose magic number or size (e.g. truncated) is wrong.
+    """
     path = pathlib.Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: flow file not found")
@@ -32,16 +40,22 @@ def read_flo(path) -> np.ndarray:
     return np.frombuffer(data[12:], "<f4").reshape(height, width, 2).copy()
 
 
-def write_flo(path, flow) -> None:
-    """Write (H, W, 2) flow as a .flo file."""
+def write_flo(path: str | os.PathLike, flow) -> pathlib.Path:
+    """Write (H, W, 2) flow as a .flo file (missing parent folders are created).
+
+    Raises:
+        ValueError: naming the flow's bad shape or the unusable path.
+    """
     flow = np.asarray(flow, np.float32)
-    if flow.ndim != 3 or flow.shape[2] != 2:
-        raise ValueError(f"flow must have shape (H, W, 2), got {flow.shape}")
+    if flow.ndim != 3 or flow.shape[2] != 2 or flow.size == 0:
+        raise ValueError(f"write_flo: flow must have shape (H, W, 2) with H, W ≥ 1, got {flow.shape}")
+    path = prepare_output_file(path, "write_flo: path")
     h, w = flow.shape[:2]
     with open(path, "wb") as f:
         f.write(np.array([FLO_MAGIC], "<f4").tobytes())
         f.write(np.array([w, h], "<i4").tobytes())
         f.write(flow.astype("<f4").tobytes())
+    return path
 
 
 def known_flow_mask(flow) -> np.ndarray:
@@ -53,9 +67,15 @@ def known_flow_mask(flow) -> np.ndarray:
 def flow_errors(flow, gt, mask=None) -> dict:
     """Mean endpoint error (px) and mean angular error (deg, Barron et al. with the third component 1)."""
     flow, gt = np.asarray(flow, np.float64), np.asarray(gt, np.float64)
+    if gt.ndim != 3 or gt.shape[2] != 2:
+        raise ValueError(f"flow_errors: gt must have shape (H, W, 2), got {gt.shape}")
     if flow.shape != gt.shape:
-        raise ValueError(f"flow shape {flow.shape} does not match ground truth {gt.shape}")
+        raise ValueError(f"flow_errors: flow shape {flow.shape} does not match ground truth {gt.shape}")
+    if mask is not None and np.shape(mask) != gt.shape[:2]:
+        raise ValueError(f"flow_errors: mask must have shape {gt.shape[:2]}, got {np.shape(mask)}")
     valid = known_flow_mask(gt) if mask is None else (np.asarray(mask, bool) & known_flow_mask(gt))
+    if not valid.any():
+        raise ValueError("flow_errors: no pixel has known ground truth (inside the mask); the errors are undefined")
     f, g = flow[valid], gt[valid]
     epe = np.linalg.norm(f - g, axis=-1)
     cos = (1 + np.sum(f * g, -1)) / np.sqrt((1 + np.sum(f * f, -1)) * (1 + np.sum(g * g, -1)))
@@ -82,6 +102,10 @@ def flow_to_colour(flow, max_flow: float | None = None) -> np.ndarray:
     Unknown flow is drawn black. `max_flow` sets the saturation scale (default: the largest magnitude).
     """
     flow = np.asarray(flow, np.float64)
+    if flow.ndim != 3 or flow.shape[2] != 2:
+        raise ValueError(f"flow_to_colour: flow must have shape (H, W, 2), got {flow.shape}")
+    if max_flow is not None and not (np.isfinite(max_flow) and max_flow > 0):
+        raise ValueError(f"flow_to_colour: max_flow must be a finite number > 0, got {max_flow!r}")
     known = known_flow_mask(flow)
     u = np.where(known, flow[..., 0], 0.0)
     v = np.where(known, flow[..., 1], 0.0)
