@@ -4,13 +4,14 @@ An implementation of Brox, Rosenhahn, Gall and Cremers, "Combined Region- and Mo
 Tracking of Rigid and Articulated Objects" (TPAMI 2010).
 """
 
+import importlib as _importlib
+from typing import TYPE_CHECKING as _TYPE_CHECKING
+
 from . import cues as cues
-from . import image as image
 from . import geometry as geometry
-from . import io as io
+from . import image as image
 from . import render as render
 from . import solve as solve
-from . import synth as synth
 from ._status import Status as Status
 from ._status import StatusError as StatusError
 from ._status import check_status as check_status
@@ -34,3 +35,23 @@ from .solve import make_correspondences as make_correspondences
 from .solve import solve_pose as solve_pose
 
 __version__ = "0.1.0"
+
+# Host-side subpackages that pull in OpenCV, trimesh, embree and scikit-image load on first access
+# (PEP 562): `jaxtrack.io`, `jaxtrack.synth` and `from jaxtrack.synth import ...` work as before, but a
+# plain `import jaxtrack` no longer pays for them.
+_LAZY_SUBPACKAGES = ("io", "synth")
+
+
+def __getattr__(name: str):
+    if name in _LAZY_SUBPACKAGES:
+        return _importlib.import_module(f".{name}", __name__)  # the import binds it as an attribute
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list:
+    return sorted(set(globals()) | set(_LAZY_SUBPACKAGES))
+
+
+if _TYPE_CHECKING:
+    from . import io as io
+    from . import synth as synth

@@ -1,4 +1,14 @@
-"""Synthetic data with exact ground truth."""
+"""Synthetic data with exact ground truth.
+
+The 2D-3D pose scenes (`random_pose_scene`, `demo_chain`, ...) are pure JAX/numpy and load eagerly;
+the rendered sequences (`render_sequence`, `PRESETS`, `RayCaster`, ...) need OpenCV, trimesh, embree and
+scikit-image and load on first use (PEP 562).
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING
 
 from ._pose_scenes import PoseScene as PoseScene
 from ._pose_scenes import camera_ring as camera_ring
@@ -8,8 +18,32 @@ from ._pose_scenes import perturb_pose as perturb_pose
 from ._pose_scenes import project_model_points as project_model_points
 from ._pose_scenes import random_pose_scene as random_pose_scene
 from ._pose_scenes import random_rotation as random_rotation
-from ._raycast import RayCaster as RayCaster
-from ._sequences import PRESETS as PRESETS
-from ._sequences import SynthConfig as SynthConfig
-from ._sequences import render_sequence as render_sequence
-from ._sequences import write_sequence as write_sequence
+
+# public name -> private module defining it (loaded on first access)
+_LAZY = {
+    "RayCaster": "_raycast",
+    "PRESETS": "_sequences",
+    "SynthConfig": "_sequences",
+    "render_sequence": "_sequences",
+    "write_sequence": "_sequences",
+}
+
+
+def __getattr__(name: str):
+    if name not in _LAZY:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f".{_LAZY[name]}", __name__), name)
+    globals()[name] = value  # later look-ups skip __getattr__
+    return value
+
+
+def __dir__() -> list:
+    return sorted(set(globals()) | set(_LAZY))
+
+
+if TYPE_CHECKING:  # static analysers and IDEs see the real definitions
+    from ._raycast import RayCaster as RayCaster
+    from ._sequences import PRESETS as PRESETS
+    from ._sequences import SynthConfig as SynthConfig
+    from ._sequences import render_sequence as render_sequence
+    from ._sequences import write_sequence as write_sequence

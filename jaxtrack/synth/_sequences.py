@@ -67,7 +67,7 @@ PRESETS = {
 
 def photo(name: str) -> np.ndarray:
     """A photograph shipped with scikit-image as float32 RGB in [0, 255]."""
-    import skimage.data  # noqa: PLC0415 (optional heavy import)
+    import skimage.data  # heavy: only when a photo is used
 
     if name not in PHOTOS:
         raise ValueError(f"unknown photo {name!r}; choose from {', '.join(PHOTOS)}")
@@ -198,7 +198,7 @@ def render_sequence(cfg: SynthConfig, progress=None):
         imgs, poses, objm, occm = [], [], [], []
         for k in keep:
             T_co = T_cam[k] @ T_obj[k]
-            face, depth, pts = caster.cast(K, T_co, cfg.width, cfg.height)
+            face, _depth, pts = caster.cast(K, T_co, cfg.width, cfg.height)
             img = background_plane(bg, cfg.background_colour, K, T_cam[k], cfg.width, cfg.height)
             hit = face >= 0
             img[hit] = caster.shade(face, pts, T_co)[hit]
