@@ -1,0 +1,286 @@
+"""Model-based occlusion detection with an appearance model on the surface (Section III-C, eq. 9-10).
+
+The appearance model f(X) is a grey texture over the mesh (`TextureAtlas`). At frame t, with the pose
+χ_t known, the model is rendered into each camera (the model image M(x) = f(X(x))); for every object
+pixel x the grey histograms of M and of the image I over a window around x are compared,
+d = ½ Σ_b |p_M,b − p_I,b| ∈ [0, 1] (eq. 9), and x is occluded when d > 1/4. The flow cue gets
+r(x) = 0 there and 1 elsewhere; the SIFT cue drops keypoints there. The model is then updated where
+not occluded, f_t = (1 − 1/8) f_{t−1} + 1/8 I (eq. 10); texels seen for the first time take I.
+Texels never seen are unknown: they neither vote in the histograms nor count as occluded.
+
+Both histograms see the image through the same surface sampling: the image is read at the texel
+centres (`observe_texels`) and shown at the pixels through the same texel lookup as the model, so an
+unchanged surface gives d = 0 exactly and only appearance changes (an occluder, lighting) raise d.
+
+Everything here is pure JAX on static shapes; thresholds and rates are arrays (`OcclusionParams`),
+so sweeping or differentiating them does not recompile. Cameras sit on a leading axis.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from ...geometry import Camera, KinematicModel, part_transforms, rigid_model
+from ...image import gaussian_blur, sample_bilinear
+from ...render import RenderOutput
+from ._atlas import TextureAtlas, texel_index
+from ._histogram import local_gain, patch_histogram_distance, to_gray
+
+
+class OcclusionParams(eqx.Module):
+    """Thresholds and rates of eq. 9-10 as arrays (vmappable, differentiable, no recompilation).
+
+    Attributes:
+        threshold: occluded when d > threshold (paper: 1/4).
+        rate: appearance update rate (paper: 1/8).
+        min_known: least fraction of a window's pixels with a known model appearance for a decision.
+        max_gain: bound of the local brightness gain between model and image (≥ 1; 1 switches the
+            compensation off). Shading changes as the surface turns against the light, and texels
+            hidden for a while miss the updates that would have followed it; a gain within
+            [1/max_gain, max_gain] absorbs that but not the difference to most occluders.
+    """
+
+    threshold: jax.Array
+    rate: jax.Array
+    min_known: jax.Array
+    max_gain: jax.Array
+
+
+def occlusion_params(threshold=0.25, rate=0.125, min_known=0.25, max_gain=1.5, dtype=jnp.float32) -> OcclusionParams:
+    """`OcclusionParams` with the paper's values by default.
+
+    Raises:
+        ValueError: naming a parameter outside its domain.
+    """
+    for name, value, lo, hi in (("threshold", threshold, 0.0, 1.0), ("rate", rate, 0.0, 1.0), ("min_known", min_known, 0.0, 1.0)):
+        if not lo <= float(value) <= hi:
+            raise ValueError(f"occlusion_params: {name} must lie in [{lo}, {hi}], got {value}")
+    if not float(max_gain) >= 1.0:
+        raise ValueError(f"occlusion_params: max_gain must be ≥ 1, got {max_gain}")
+    return OcclusionParams(*(jnp.asarray(x, dtype) for x in (threshold, rate, min_known, max_gain)))
+
+
+class OcclusionConfig(eqx.Module):
+    """Static settings (they shape the compiled program).
+
+    Attributes:
+        bins: grey histogram bins.
+        window: odd side of the square patch (pixels).
+        depth_tolerance: relative depth slack of the texel visibility test in the update.
+        gain_window: odd side of the window of the local gain estimate (pixels).
+        blur_sigma: Gaussian σ (pixels) applied to the image before it is read at the texels; it
+            removes aliasing and pixel noise that the averaging model (eq. 10) does not have, which
+            would otherwise widen the image's histograms against the model's.
+    """
+
+    bins: int = eqx.field(static=True, default=8)
+    window: int = eqx.field(static=True, default=9)
+    depth_tolerance: float = eqx.field(static=True, default=5e-3)
+    gain_window: int = eqx.field(static=True, default=31)
+    blur_sigma: float = eqx.field(static=True, default=1.0)
+
+    def __check_init__(self):
+        if self.bins < 2:
+            raise ValueError(f"OcclusionConfig.bins must be ≥ 2, got {self.bins}")
+        for name in ("window", "gain_window"):
+            value = getattr(self, name)
+            if value < 1 or value % 2 == 0:
+                raise ValueError(f"OcclusionConfig.{name} must be a positive odd number, got {value}")
+
+
+class AppearanceModel(eqx.Module):
+    """The appearance model f(X) (state carried from frame to frame).
+
+    Attributes:
+        texture: (T,) grey value per texel (0-255).
+        seen: (T,) bool texel has been observed (unknown otherwise).
+    """
+
+    texture: jax.Array
+    seen: jax.Array
+
+
+def init_appearance(atlas: TextureAtlas, dtype=jnp.float32) -> AppearanceModel:
+    """An empty model: every texel unknown. The first `update_appearance` (at the known initial pose)
+    fills what it sees."""
+    return AppearanceModel(jnp.zeros((atlas.num_texels,), dtype), jnp.zeros((atlas.num_texels,), bool))
+
+
+class OcclusionMap(eqx.Module):
+    """Per-pixel result for one camera (a leading C axis for a rig).
+
+    Attributes:
+        distance: (H, W) histogram distance d (eq. 9), 0 off the object.
+        occluded: (H, W) bool object pixel with d > threshold and enough known model pixels around it.
+        data_weight: (H, W) r(x): 0 where occluded, 1 elsewhere (the flow cue's `data_weight`).
+        model_image: (H, W) the model's grey appearance M(x) (0 where unknown or off the object).
+        known: (H, W) bool object pixel whose texel has been seen.
+        visible: (H, W) bool non-occluded object pixels (the SIFT cue's detection mask).
+    """
+
+    distance: jax.Array
+    occluded: jax.Array
+    data_weight: jax.Array
+    model_image: jax.Array
+    known: jax.Array
+    visible: jax.Array
+
+
+class TexelObservation(eqx.Module):
+    """The image read at every texel centre of the mesh at the current pose (one camera; a leading C
+    axis for a rig).
+
+    Attributes:
+        value: (T,) grey value (bilinear) at the texel's projection.
+        visible: (T,) bool texel in front of the depth buffer, inside the image and inside its triangle.
+        pixel: (T,) int32 flat index (row · W + column) of the pixel nearest the projection.
+    """
+
+    value: jax.Array
+    visible: jax.Array
+    pixel: jax.Array
+
+
+def _observe_one(atlas, image, depth, camera, T_world_parts, tolerance, blur_sigma):
+    T_cam_parts = camera.T_cam_world @ T_world_parts
+    T = T_cam_parts[atlas.texel_part] if T_world_parts.shape[0] > 1 else T_cam_parts[0]
+    p = atlas.texel_p_model
+    p_cam = jnp.stack([T[..., i, 0] * p[:, 0] + T[..., i, 1] * p[:, 1] + T[..., i, 2] * p[:, 2] + T[..., i, 3] for i in range(3)], -1)
+    z = p_cam[:, 2]
+    safe_z = jnp.where(z > 1e-6, z, 1e-6)
+    K = camera.K
+    x, y = p_cam[:, 0] / safe_z, p_cam[:, 1] / safe_z
+    u = K[0, 0] * x + K[0, 1] * y + K[0, 2]
+    v = K[1, 1] * y + K[1, 2]
+    h, w = depth.shape
+    ui = jnp.clip(jnp.round(u).astype(jnp.int32), 0, w - 1)
+    vi = jnp.clip(jnp.round(v).astype(jnp.int32), 0, h - 1)
+    gray = gaussian_blur(to_gray(image).astype(p_cam.dtype)[..., None], blur_sigma)
+    value, inside = sample_bilinear(gray, u, v)
+    depth_at = depth[vi, ui]  # +inf off the object: such texels are hidden behind the silhouette edge
+    visible = inside & (z > 1e-6) & jnp.isfinite(depth_at) & (z <= depth_at * (1 + tolerance) + 1e-3)
+    return TexelObservation(value[:, 0], visible & atlas.texel_live, vi * w + ui)
+
+
+def observe_texels(
+    atlas: TextureAtlas,
+    images,
+    depth,
+    cameras: Camera,
+    T_world_root,
+    theta=None,
+    model: KinematicModel | None = None,
+    config: OcclusionConfig | None = None,
+) -> TexelObservation:
+    """Read frames t at the texel centres projected with the pose χ_t, per camera. Jittable.
+
+    Args:
+        atlas: texture layout of the mesh.
+        images: (C, H, W) grey or (C, H, W, 3) RGB frames (0-255).
+        depth: (C, H, W) rendered depth at χ_t (+inf off the object), for the visibility test.
+        cameras: stacked rig (C on the leading axis).
+        T_world_root: (4, 4) root pose; theta: (J,) joint angles; model: kinematic tree (rigid if None).
+
+    Returns:
+        `TexelObservation` with a leading C axis.
+    """
+    config = OcclusionConfig() if config is None else config
+    dtype = atlas.texel_p_model.dtype
+    model = rigid_model(dtype) if model is None else model
+    T_world_root = jnp.asarray(T_world_root, dtype)
+    theta = jnp.zeros((model.num_joints,), dtype) if theta is None else jnp.asarray(theta, dtype)
+    T_world_parts = part_transforms(model, T_world_root, theta)
+    return jax.vmap(lambda img, dep, cam: _observe_one(atlas, img, dep, cam, T_world_parts, config.depth_tolerance, config.blur_sigma))(
+        images, depth, cameras
+    )
+
+
+def model_image(atlas: TextureAtlas, appearance: AppearanceModel, rendered: RenderOutput):
+    """M(x) = f(X(x)) for one camera: (H, W) grey values and (H, W) bool known."""
+    covered = rendered.face_id >= 0
+    idx = texel_index(atlas, rendered.face_id, rendered.p_model)
+    known = covered & appearance.seen[idx]
+    return jnp.where(known, appearance.texture[idx], 0.0), known
+
+
+@eqx.debug.assert_max_traces(max_traces=None)  # counts traces (eqx.debug.get_num_traces); never fails
+def _detect_one(atlas, appearance, observation, rendered, params, config):
+    covered = rendered.face_id >= 0
+    idx = texel_index(atlas, rendered.face_id, rendered.p_model)
+    known = covered & appearance.seen[idx]
+    model = jnp.where(known, appearance.texture[idx], 0.0)
+    # The image seen through the same texel lookup as the model (see the module docstring).
+    seen_now = covered & observation.visible[idx]
+    image = jnp.where(seen_now, observation.value[idx], 0.0).astype(model.dtype)
+    valid = known & seen_now
+
+    def decide(gain_mask):
+        gain = local_gain(model, image, gain_mask, config.gain_window, params.max_gain)
+        d, count = patch_histogram_distance(model * gain, image, valid, config.bins, config.window)
+        enough = count >= params.min_known * config.window**2
+        return d, covered & enough & (d > params.threshold)
+
+    # Two passes: the gain of the second ignores the pixels the first found occluded.
+    _, first = decide(valid)
+    d, occluded = decide(valid & ~first)
+    return OcclusionMap(
+        distance=jnp.where(covered, d, 0.0),
+        occluded=occluded,
+        data_weight=jnp.where(occluded, 0.0, 1.0).astype(model.dtype),
+        model_image=model,
+        known=known,
+        visible=covered & ~occluded,
+    )
+
+
+def detect_occlusion(
+    atlas: TextureAtlas,
+    appearance: AppearanceModel,
+    observation: TexelObservation,
+    rendered: RenderOutput,
+    params: OcclusionParams,
+    config: OcclusionConfig | None = None,
+) -> OcclusionMap:
+    """Occlusion maps of C cameras at the current pose (eq. 9). Jittable (inline it in a tracker step).
+
+    Args:
+        atlas: texture layout of the mesh.
+        appearance: the model f_{t−1}.
+        observation: `observe_texels` of frames t at χ_t (leading C axis).
+        rendered: the mesh rendered at χ_t in each camera, stacked on a leading C axis.
+        params, config: thresholds/rate (arrays) and static settings (default `OcclusionConfig()`).
+
+    Returns:
+        `OcclusionMap` with a leading C axis.
+    """
+    config = OcclusionConfig() if config is None else config
+    return jax.vmap(lambda obs, ren: _detect_one(atlas, appearance, obs, ren, params, config))(observation, rendered)
+
+
+def update_appearance(
+    appearance: AppearanceModel, observation: TexelObservation, occluded, params: OcclusionParams
+) -> AppearanceModel:
+    """f_t = (1 − rate) f_{t−1} + rate · I where visible and not occluded (eq. 10); untouched elsewhere.
+
+    Texels seen for the first time take I. With several cameras a texel takes the mean of the
+    cameras that see it unoccluded. Jittable.
+
+    Args:
+        appearance: the model f_{t−1}.
+        observation: `observe_texels` of frames t at χ_t (leading C axis).
+        occluded: (C, H, W) bool from `detect_occlusion` (all False for the initialising frame).
+        params: `rate` is used.
+    """
+    occ_flat = occluded.reshape(occluded.shape[0], -1)
+    occ_at = jnp.take_along_axis(occ_flat, observation.pixel, axis=1)
+    usable = observation.visible & ~occ_at
+    n = jnp.sum(usable, 0)
+    observed = n > 0
+    mean = jnp.sum(jnp.where(usable, observation.value, 0.0), 0) / jnp.maximum(n, 1)
+    dtype = appearance.texture.dtype
+    blended = jnp.where(appearance.seen, (1 - params.rate) * appearance.texture + params.rate * mean, mean)
+    return AppearanceModel(
+        texture=jnp.where(observed, blended, appearance.texture).astype(dtype), seen=appearance.seen | observed
+    )

@@ -1,0 +1,116 @@
+"""A texture atlas over a triangle mesh: the support of the appearance model f(X) (Section III-C).
+
+Every face carries a square grid of R_f × R_f texels over its barycentric coordinates (l1, l2)
+(texels with i + j > R_f lie outside the triangle and are never used). R_f follows the face's longest
+edge and a texel size in mm, so big faces (the 12 triangles of a box) and small ones (a teapot's
+9438) both get texels of about one pixel. The atlas is built once on the host; inside jit it is a
+constant pytree of arrays.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ...render import Mesh
+
+
+class TextureAtlas(eqx.Module):
+    """Texel layout of a mesh (T texels in all, F faces).
+
+    Attributes:
+        face_offset: (F,) int32 index of face f's first texel.
+        face_res: (F,) int32 grid resolution R_f (texels along each barycentric axis).
+        face_map: (F, 2, 4) affine map from a model-frame point on face f to its (l1, l2).
+        texel_p_model: (T, 3) texel centre, model frame at the zero configuration (mm), clamped
+            into its triangle.
+        texel_part: (T,) int32 part of the texel's face.
+        texel_live: (T,) bool texel lies (at least partly) inside its triangle.
+    """
+
+    face_offset: jax.Array
+    face_res: jax.Array
+    face_map: jax.Array
+    texel_p_model: jax.Array
+    texel_part: jax.Array
+    texel_live: jax.Array
+
+    @property
+    def num_texels(self) -> int:
+        return self.texel_live.shape[0]
+
+
+def _face_resolutions(edge_max, texel_mm, max_res):
+    return np.clip(np.ceil(edge_max / texel_mm), 1, max_res).astype(np.int64)
+
+
+def make_texture_atlas(mesh: Mesh, texel_mm: float = 1.0, max_texels: int = 400_000, max_res: int = 512) -> TextureAtlas:
+    """Build the atlas of `mesh` (host side).
+
+    Args:
+        mesh: the tracked mesh (model frame, mm).
+        texel_mm: texel edge length; about the pixel footprint of the surface at the working distance
+            (e.g. 1 mm for a 16 cm object seen at 60 cm with f = 700 px).
+        max_texels: capacity bound; the texel size grows until Σ R_f² fits.
+        max_res: largest R_f.
+
+    Raises:
+        ValueError: for a non-positive `texel_mm` or `max_texels` smaller than the face count.
+    """
+    if not texel_mm > 0:
+        raise ValueError(f"texel_mm must be > 0, got {texel_mm}")
+    v = np.asarray(mesh.vertices, np.float64)
+    f = np.asarray(mesh.faces, np.int64)
+    if max_texels < len(f):
+        raise ValueError(f"max_texels ({max_texels}) must be at least the number of faces ({len(f)})")
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    e1, e2 = b - a, c - a
+    edge_max = np.max(np.stack([np.linalg.norm(e1, axis=1), np.linalg.norm(e2, axis=1), np.linalg.norm(c - b, axis=1)]), 0)
+    res = _face_resolutions(edge_max, texel_mm, max_res)
+    while np.sum(res**2) > max_texels:
+        texel_mm *= 1.1 * np.sqrt(np.sum(res**2) / max_texels)
+        res = _face_resolutions(edge_max, texel_mm, max_res)
+    # (l1, l2) = G⁻¹ [e1·(p − a), e2·(p − a)]: least squares on the face plane.
+    G = np.stack([np.stack([np.sum(e1 * e1, 1), np.sum(e1 * e2, 1)], -1), np.stack([np.sum(e1 * e2, 1), np.sum(e2 * e2, 1)], -1)], 1)
+    det = G[:, 0, 0] * G[:, 1, 1] - G[:, 0, 1] ** 2
+    ok = det > 1e-12 * np.maximum(G[:, 0, 0] * G[:, 1, 1], 1e-30)
+    Ginv = np.zeros_like(G)
+    Ginv[ok] = np.linalg.inv(G[ok])
+    lin = np.einsum("fij,fjk->fik", Ginv, np.stack([e1, e2], 1))  # (F, 2, 3)
+    off = -np.einsum("fik,fk->fi", lin, a)
+    face_map = np.concatenate([lin, off[..., None]], -1)
+    offset = np.concatenate([[0], np.cumsum(res**2)[:-1]])
+    total = int(np.sum(res**2))
+    face_of = np.repeat(np.arange(len(f)), res**2)
+    local = np.arange(total) - offset[face_of]
+    r = res[face_of]
+    i, j = local // r, local % r
+    l1, l2 = (i + 0.5) / r, (j + 0.5) / r
+    live = i + j <= r  # the cell [i, i+1] x [j, j+1] / R touches the triangle l1 + l2 ≤ 1
+    s = np.maximum(l1 + l2, 1.0)  # clamp centres into the triangle
+    l1, l2 = l1 / s, l2 / s
+    p = a[face_of] + l1[:, None] * e1[face_of] + l2[:, None] * e2[face_of]
+    dtype = mesh.vertices.dtype
+    return TextureAtlas(
+        face_offset=jnp.asarray(offset, jnp.int32),
+        face_res=jnp.asarray(res, jnp.int32),
+        face_map=jnp.asarray(face_map, dtype),
+        texel_p_model=jnp.asarray(p, dtype),
+        texel_part=jnp.asarray(np.asarray(mesh.face_part)[face_of], jnp.int32),
+        texel_live=jnp.asarray(live & ok[face_of]),
+    )
+
+
+def texel_index(atlas: TextureAtlas, face_id, p_model):
+    """Texel under surface points: face ids (...,) (−1 = none) and model points (..., 3) → (...,) int32
+    texel index (0 where face_id < 0; mask with face_id ≥ 0). Jittable."""
+    covered = face_id >= 0
+    face = jnp.where(covered, face_id, 0)
+    M = atlas.face_map[face]  # (..., 2, 4)
+    l = M[..., :3] @ p_model[..., None]
+    l = l[..., 0] + M[..., 3]
+    res = atlas.face_res[face]
+    ij = jnp.clip(jnp.floor(l * res[..., None].astype(l.dtype)).astype(jnp.int32), 0, res[..., None] - 1)
+    return jnp.where(covered, atlas.face_offset[face] + ij[..., 0] * res + ij[..., 1], 0)
