@@ -1,6 +1,7 @@
 """Synthetic sequences: deterministic, exact ground truth, cross-checked against the JAX renderer."""
 
 import dataclasses
+import itertools
 
 import jax.numpy as jnp
 import numpy as np
@@ -8,6 +9,7 @@ import pytest
 
 import jaxtrack as jt
 from jaxtrack.cli import main as cli_main
+from jaxtrack.geometry import rotation_error_deg
 from jaxtrack.io import read_sequence
 from jaxtrack.render import Renderer, make_mesh
 from jaxtrack.synth import PRESETS, SynthConfig, render_sequence
@@ -43,8 +45,8 @@ def test_ray_caster_and_jax_renderer_agree(preset, shared_data):
 def test_motion_has_the_requested_step():
     cfg = _small(SynthConfig(motion="random", step_px=20, step_deg=6), frames=6)
     T = render_sequence(cfg)["T_cam_obj"][0]
-    for a, b in zip(T[:-1], T[1:]):
-        angle = np.degrees(np.arccos(np.clip((np.trace(b[:3, :3] @ a[:3, :3].T) - 1) / 2, -1, 1)))
+    for a, b in itertools.pairwise(T):
+        angle = float(rotation_error_deg(b[:3, :3], a[:3, :3]))
         assert angle == pytest.approx(6.0, abs=1e-6)
         shift_px = np.linalg.norm(b[:3, 3] - a[:3, 3]) * cfg.focal / cfg.distance
         assert shift_px == pytest.approx(20.0, rel=1e-6)
@@ -69,3 +71,66 @@ def test_cli_writes_a_readable_bop_sequence(tmp_path, shared_data):
     assert np.isfinite(view.T_cam_obj[1]).all()
     assert (tmp_path / "seq" / "000000" / "occluder_mask" / "000001.png").is_file()
     assert cli_main(["synth", "--preset", "nope", str(tmp_path / "x")]) == 2
+
+
+@pytest.mark.parametrize(
+    "field, value, message",
+    [
+        ("frames", -3, "SynthConfig.frames must be an integer ≥ 1, got -3"),
+        ("frames", 2.5, "SynthConfig.frames must be an integer"),
+        ("cameras", 0, "SynthConfig.cameras must be an integer in \\[1, 4\\], got 0"),
+        ("occluders", True, "SynthConfig.occluders must be an integer"),
+        ("width", 4, "SynthConfig.width must be an integer ≥ 8"),
+        ("seed", -1, "SynthConfig.seed"),
+        ("noise_sigma", -1.0, "SynthConfig.noise_sigma must be a finite number ≥ 0"),
+        ("salt_fraction", 1.5, "SynthConfig.salt_fraction must lie in \\[0, 1\\]"),
+        ("focal", 0.0, "SynthConfig.focal must be a finite number > 0"),
+        ("size_mm", float("nan"), "SynthConfig.size_mm"),
+        ("appearance", "shiny", "SynthConfig.appearance must be one of texture, photo, flat"),
+        ("motion", "teleport", "SynthConfig.motion must be one of"),
+        ("background", "moon", "SynthConfig.background must be one of"),
+        ("colour", (1, 2), "SynthConfig.colour must be 3 numbers in \\[0, 255\\]"),
+        ("object", "no/such/mesh.ply", "SynthConfig.object .*mesh file not found"),
+        ("pose_file", "no/such/poses.npy", "SynthConfig.pose_file: .*pose file not found"),
+    ],
+)
+def test_config_refuses_values_it_cannot_render(field, value, message):
+    with pytest.raises(ValueError, match=message):
+        SynthConfig(**{field: value})
+    with pytest.raises(ValueError, match=message):  # overriding a preset goes through the same check
+        dataclasses.replace(PRESETS["stereo-noise"], **{field: value})
+
+
+def test_pose_file_is_validated_by_name(tmp_path):
+    good = np.repeat(np.eye(4)[None], 3, 0)
+    good[:, 2, 3] = 600.0
+    np.save(tmp_path / "good.npy", good)
+    cfg = _small(SynthConfig(motion="file", pose_file=str(tmp_path / "good.npy"), frames=3, object="box"))
+    np.testing.assert_allclose(render_sequence(cfg)["T_cam_obj"][0][:, :3, :3], np.repeat(_look_at_R(cfg)[None], 3, 0) @ good[:, :3, :3])
+    bad = good.copy()
+    bad[1, :3, :3] *= 2.0
+    np.save(tmp_path / "bad.npy", bad)
+    with pytest.raises(ValueError, match="bad.npy: pose 1 rotation is not a rotation matrix"):
+        render_sequence(dataclasses.replace(cfg, pose_file=str(tmp_path / "bad.npy")))
+    np.save(tmp_path / "short.npy", good[:2])
+    with pytest.raises(ValueError, match="short.npy: need \\(3, 4, 4\\) poses"):
+        render_sequence(dataclasses.replace(cfg, pose_file=str(tmp_path / "short.npy")))
+    (tmp_path / "junk.npy").write_text("junk")
+    with pytest.raises(ValueError, match="junk.npy: not a .npy array file"):
+        render_sequence(dataclasses.replace(cfg, pose_file=str(tmp_path / "junk.npy")))
+
+
+def _look_at_R(cfg):
+    from jaxtrack.synth import look_at
+
+    return look_at([0.0, -0.35 * cfg.distance, -cfg.distance])[0]
+
+
+def test_write_sequence_refuses_a_file_as_root_before_rendering(tmp_path):
+    from jaxtrack.synth import write_sequence
+
+    (tmp_path / "f").write_text("x")
+    calls = []
+    with pytest.raises(ValueError, match="write_sequence: root: .*f exists and is not a folder"):
+        write_sequence(_small(SynthConfig(frames=1)), tmp_path / "f", progress=type("P", (), {"update": calls.append})())
+    assert calls == []  # nothing was rendered

@@ -27,6 +27,7 @@ _EXPORTS = {
     "image_size": "_images",
     "prepare_output_file": "_images",
     "prepare_output_folder": "_images",
+    "prepare_image_output": "_images",
     "read_image": "_images",
     "write_image": "_images",
     "load_mesh": "_meshes",
@@ -61,6 +62,7 @@ if TYPE_CHECKING:  # static analysers and IDEs see the real definitions
     from ._flo import read_flo as read_flo
     from ._flo import write_flo as write_flo
     from ._images import image_size as image_size
+    from ._images import prepare_image_output as prepare_image_output
     from ._images import prepare_output_file as prepare_output_file
     from ._images import prepare_output_folder as prepare_output_folder
     from ._images import read_image as read_image

@@ -96,6 +96,19 @@ def prepare_output_folder(path: str | os.PathLike, what: str = "output folder") 
     return path
 
 
+def prepare_image_output(path: str | os.PathLike, what: str = "image") -> pathlib.Path:
+    """`prepare_output_file` for an image: also refuses an extension OpenCV has no writer for.
+
+    Call it before expensive work whose result goes to `write_image`.
+    """
+    import cv2
+
+    path = pathlib.Path(path)
+    if not cv2.haveImageWriter(str(path)):
+        raise ValueError(f"{what}: {path}: no image writer for extension {path.suffix!r} (use .png, .jpg, ...)")
+    return prepare_output_file(path, what)
+
+
 def _make_folder(folder: pathlib.Path, what: str) -> None:
     for p in (folder, *folder.parents):
         if p.exists() and not p.is_dir():
@@ -122,10 +135,7 @@ def write_image(path: str | os.PathLike, image, what: str = "image") -> pathlib.
         raise ValueError(f"{what}: image must be (H, W) or (H, W, 3), got shape {image.shape}")
     if image.dtype not in (np.uint8, np.uint16):
         raise ValueError(f"{what}: image must be uint8 or uint16, got {image.dtype}")
-    path = pathlib.Path(path)
-    if not cv2.haveImageWriter(str(path)):
-        raise ValueError(f"{what}: {path}: no image writer for extension {path.suffix!r} (use .png, .jpg, ...)")
-    prepare_output_file(path, what)
+    path = prepare_image_output(path, what)
     if image.ndim == 3:
         image = np.ascontiguousarray(image[..., ::-1])  # RGB → BGR
     try:

@@ -19,11 +19,17 @@ import cv2
 import numpy as np
 import trimesh
 
-from ..io import load_trimesh, write_camera_view
+from ..geometry import checked_array, checked_rotation
+from ..io import load_trimesh, prepare_output_folder, write_camera_view, write_image
 from ._pose_scenes import look_at
 from ._raycast import RayCaster, background_plane, mesh_appearance
 
 SHARED_MESHES = pathlib.Path(os.environ.get("JAXTRACK_SHARED", pathlib.Path(__file__).resolve().parents[3] / "shared")) / "data" / "meshes"
+NAMED_OBJECTS = {
+    "teapot": SHARED_MESHES / "utah_teapot_solid.stl",
+    "cracker_box": SHARED_MESHES / "ycb_003_cracker_box" / "cracker_box.obj",
+    "milk_truck": SHARED_MESHES / "CesiumMilkTruck.glb",
+}
 PHOTOS = ("coffee", "astronaut", "rocket", "chelsea", "brick", "gravel", "camera", "grass")
 
 
@@ -54,6 +60,53 @@ class SynthConfig:
     distance: float = 600.0
     seed: int = 0
 
+    def __post_init__(self):
+        """Refuse values that would render something else than asked (or fail deep in numpy)."""
+        _check_choice("object", self.object, None)
+        _check_choice("appearance", self.appearance, APPEARANCES)
+        _check_choice("texture_photo", self.texture_photo, PHOTOS)
+        _check_choice("background", self.background, (*PHOTOS, "flat"))
+        _check_choice("motion", self.motion, MOTIONS)
+        if self.object not in (*NAMED_OBJECTS, "box") and not pathlib.Path(self.object).is_file():
+            raise ValueError(f"SynthConfig.object must be box, {', '.join(NAMED_OBJECTS)} or a mesh file; "
+                             f"{self.object}: mesh file not found")
+        if self.motion == "file" and not self.pose_file:
+            raise ValueError("SynthConfig.pose_file: motion 'file' needs a .npy of (N, 4, 4) object poses in mm")
+        if self.pose_file is not None and not pathlib.Path(self.pose_file).is_file():
+            raise ValueError(f"SynthConfig.pose_file: {self.pose_file}: pose file not found")
+        for name in ("colour", "background_colour"):
+            c = np.asarray(getattr(self, name), dtype=object)
+            if c.shape != (3,) or not all(_is_number(v) and 0 <= v <= 255 for v in c):
+                raise ValueError(f"SynthConfig.{name} must be 3 numbers in [0, 255], got {getattr(self, name)!r}")
+        for name, low, high in (("frames", 1, None), ("occluders", 0, None), ("cameras", 1, 4), ("subsample", 1, None),
+                                ("width", 8, None), ("height", 8, None), ("seed", 0, None)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < low or (high is not None and v > high):
+                bound = f"in [{low}, {high}]" if high is not None else f"≥ {low}"
+                raise ValueError(f"SynthConfig.{name} must be an integer {bound}, got {v!r}")
+        for name, positive in (("size_mm", True), ("focal", True), ("distance", True), ("step_px", False),
+                               ("step_deg", False), ("noise_sigma", False), ("salt_fraction", False)):
+            v = getattr(self, name)
+            if not _is_number(v) or not (v > 0 if positive else v >= 0):
+                raise ValueError(f"SynthConfig.{name} must be a finite number {'> 0' if positive else '≥ 0'}, got {v!r}")
+        if self.salt_fraction > 1:
+            raise ValueError(f"SynthConfig.salt_fraction must lie in [0, 1], got {self.salt_fraction!r}")
+
+
+APPEARANCES = ("texture", "photo", "flat")
+MOTIONS = ("turntable", "random", "camera", "file")
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, int | float | np.integer | np.floating) and not isinstance(v, bool) and bool(np.isfinite(v))
+
+
+def _check_choice(name: str, value, choices) -> None:
+    if not isinstance(value, str) or not value:
+        raise ValueError(f"SynthConfig.{name} must be a non-empty string, got {value!r}")
+    if choices is not None and value not in choices:
+        raise ValueError(f"SynthConfig.{name} must be one of {', '.join(choices)}, got {value!r}")
+
 
 PRESETS = {
     "teabox-large-motion": SynthConfig(object="box", appearance="photo", texture_photo="chelsea", size_mm=165, motion="random", step_px=30, step_deg=10, frames=40, background="coffee"),
@@ -79,15 +132,10 @@ def photo(name: str) -> np.ndarray:
 
 def load_object(cfg: SynthConfig) -> trimesh.Trimesh:
     """The object mesh centred at its bounding-box centre, scaled so its longest side is cfg.size_mm."""
-    named = {
-        "teapot": SHARED_MESHES / "utah_teapot_solid.stl",
-        "cracker_box": SHARED_MESHES / "ycb_003_cracker_box" / "cracker_box.obj",
-        "milk_truck": SHARED_MESHES / "CesiumMilkTruck.glb",
-    }
     if cfg.object == "box":
         tm = trimesh.creation.box(extents=(1.0, 0.41, 0.48))
-    elif cfg.object in named:
-        tm = load_trimesh(named[cfg.object])
+    elif cfg.object in NAMED_OBJECTS:
+        tm = load_trimesh(NAMED_OBJECTS[cfg.object])
     else:
         tm = load_trimesh(cfg.object)
     tm = tm.copy()
@@ -112,12 +160,7 @@ def object_trajectory(cfg: SynthConfig, rng: np.random.Generator) -> tuple[np.nd
     step_deg = cfg.step_deg / cfg.subsample
     step_mm = cfg.step_px / cfg.subsample * cfg.distance / cfg.focal
     if cfg.motion == "file":
-        if not cfg.pose_file:
-            raise ValueError("motion 'file' needs pose_file (.npy of (N, 4, 4) object poses in mm)")
-        poses = np.load(cfg.pose_file)
-        if poses.ndim != 3 or poses.shape[1:] != (4, 4) or len(poses) < n:
-            raise ValueError(f"{cfg.pose_file}: need ({n}, 4, 4) poses, got {poses.shape}")
-        return poses[:n].astype(float), T_cam
+        return _read_pose_file(cfg.pose_file, n), T_cam
     axis = np.array([0.0, 1.0, 0.0]) + 0.3 * rng.normal(size=3)
     direction = rng.normal(size=3) * [1, 1, 0.3]
     # The object (or the camera's aim point) wanders within this radius of the view centre.
@@ -153,6 +196,26 @@ def object_trajectory(cfg: SynthConfig, rng: np.random.Generator) -> tuple[np.nd
     return T_obj, T_cam
 
 
+def _read_pose_file(path, n: int) -> np.ndarray:
+    """(n, 4, 4) object poses from a .npy file; errors name the file and the first bad pose."""
+    path = pathlib.Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: pose file not found")
+    try:
+        poses = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as e:
+        raise ValueError(f"{path}: not a .npy array file ({e})") from e
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4) or len(poses) < n:
+        raise ValueError(f"{path}: need ({n}, 4, 4) poses (frames x subsample), got {poses.shape}")
+    poses = poses[:n].astype(float)
+    for k, T in enumerate(poses):
+        checked_array(T, f"{path}: pose {k}")
+        checked_rotation(T[:3, :3], f"{path}: pose {k} rotation")
+        if not np.allclose(T[3], [0, 0, 0, 1]):
+            raise ValueError(f"{path}: pose {k} must have last row (0, 0, 0, 1), got {T[3].tolist()}")
+    return poses
+
+
 def _occluder_masks(cfg, rng, n):
     """Moving bars/discs that cross the image: masks (num_occluders, N, H, W) bool and RGB colours."""
     masks = np.zeros((cfg.occluders, n, cfg.height, cfg.width), bool)
@@ -175,6 +238,8 @@ def _occluder_masks(cfg, rng, n):
 def render_sequence(cfg: SynthConfig, progress=None):
     """Render all frames. Returns dict with images per camera (C, N, H, W, 3) uint8, T_cam_obj
     (C, N, 4, 4), T_cam_world (C, N, 4, 4), K, object masks (C, N, H, W) and occluder masks (C, N, H, W)."""
+    if not isinstance(cfg, SynthConfig):
+        raise TypeError(f"render_sequence: cfg must be a SynthConfig, got {type(cfg).__name__}")
     rng = np.random.default_rng(cfg.seed)
     tm = load_object(cfg)
     tex_photo = photo(cfg.texture_photo) if cfg.appearance == "photo" else None
@@ -224,9 +289,13 @@ def render_sequence(cfg: SynthConfig, progress=None):
     return out
 
 
-def write_sequence(cfg: SynthConfig, root, progress=None) -> pathlib.Path:
-    """Render `cfg` and write it in the BOP layout under `root` (plus occluder masks and the config)."""
-    root = pathlib.Path(root)
+def write_sequence(cfg: SynthConfig, root: str | os.PathLike, progress=None) -> pathlib.Path:
+    """Render `cfg` and write it in the BOP layout under `root` (plus occluder masks and the config).
+
+    Raises:
+        ValueError: `root` is an existing file (checked before rendering), or a bad config value.
+    """
+    root = prepare_output_folder(root, "write_sequence: root")  # before rendering, not after
     seq = render_sequence(cfg, progress)
     (root / "models").mkdir(parents=True, exist_ok=True)
     seq["mesh"].export(root / "models" / "obj_000001.ply")
@@ -237,7 +306,7 @@ def write_sequence(cfg: SynthConfig, root, progress=None) -> pathlib.Path:
         for name in ("object_mask", "occluder_mask"):
             (folder / name).mkdir(exist_ok=True)
             for k, m in enumerate(seq[name][c]):
-                cv2.imwrite(str(folder / name / f"{k:06d}.png"), m.astype(np.uint8) * 255)
+                write_image(folder / name / f"{k:06d}.png", m.astype(np.uint8) * 255, f"write_sequence: {name}")
     cfg_dict = dataclasses.asdict(cfg)
     (root / "synth_config.json").write_text(json.dumps(cfg_dict, indent=1))
     return root
