@@ -1,0 +1,162 @@
+"""SIFT matches → 2D-3D correspondences at t+1 (Fig. 3 right), and the back-projection check.
+
+A match x_t → x_{t+1} moves the surface point under x_t. Two assignments:
+- "vertex" (the paper): the closest projected visible mesh vertex X_v (at pose χ_t) is moved by the
+  match's displacement, giving (X_v, π_t(X_v) + x_{t+1} − x_t). Exact for translation in the image
+  plane, and a good approximation when vertices are dense (a few pixels apart);
+- "surface" (default): the rendered surface point under x_t (its pixel centre), from the renderer's
+  `p_model` buffer. Exact up to half a pixel of transfer, and it works for coarse meshes too, where
+  the nearest vertex can lie far from the keypoint (a box has 8).
+Each correspondence keeps the part of its point, so articulated models work.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from ...geometry import Camera, KinematicModel, part_transforms, rigid_model, select_camera, transform_point_columns
+from ...render import Mesh, RenderOutput
+from ...solve import Correspondences, Cue, correspondences_from_pixels
+from ._detect import SiftMatches
+from ._filters import SiftParams
+
+
+def _project(cameras: Camera, camera_index, p_world):
+    """Ideal (undistorted) pixels (N, 2) and depth (N,) of world points in per-row cameras."""
+    cam = select_camera(cameras, camera_index) if cameras.K.ndim == 3 else cameras
+    x, y, z = transform_point_columns(cam.T_cam_world, p_world[:, 0], p_world[:, 1], p_world[:, 2])
+    safe_z = jnp.where(z > 1e-6, z, 1e-6)
+    xn, yn = x / safe_z, y / safe_z
+    K = cam.K
+    return jnp.stack([K[..., 0, 0] * xn + K[..., 0, 1] * yn + K[..., 0, 2], K[..., 1, 1] * yn + K[..., 1, 2]], -1), z
+
+
+def _world_points(model: KinematicModel, T_world_root, theta, p_model, part):
+    T = part_transforms(model, T_world_root, theta)[part]  # (N, 4, 4)
+    return jnp.stack(transform_point_columns(T, p_model[:, 0], p_model[:, 1], p_model[:, 2]), -1)
+
+
+def _surface_rows(p_t, p_t1, valid, rendered: RenderOutput):
+    h, w = rendered.face_id.shape
+    q = jnp.round(p_t)
+    u = jnp.clip(q[:, 0].astype(jnp.int32), 0, w - 1)
+    v = jnp.clip(q[:, 1].astype(jnp.int32), 0, h - 1)
+    on_object = rendered.face_id[v, u] >= 0
+    pixel = jnp.stack([u, v], -1).astype(p_t.dtype) + (p_t1 - p_t)
+    return pixel, rendered.p_model[v, u], jnp.maximum(rendered.part_id[v, u], 0), valid & on_object
+
+
+def _vertex_rows(p_t, p_t1, valid, rendered: RenderOutput, vertex_px, mesh: Mesh, max_px):
+    d2 = jnp.sum((p_t[:, None, :] - vertex_px[None, :, :]) ** 2, -1)  # (N, V)
+    d2 = jnp.where(rendered.vertex_visible[None, :], d2, jnp.inf)
+    nearest = jnp.argmin(d2, axis=1)
+    close = jnp.take_along_axis(d2, nearest[:, None], 1)[:, 0] <= max_px**2
+    pixel = vertex_px[nearest] + (p_t1 - p_t)
+    return pixel, mesh.vertices[nearest].astype(p_t.dtype), mesh.vertex_part[nearest], valid & close
+
+
+@eqx.filter_jit  # inlined inside a caller's jit
+@eqx.debug.assert_max_traces(max_traces=None)  # counts traces (eqx.debug.get_num_traces); never fails
+def _sift_correspondences(matches, rendered, cameras, params, weight, mesh, model, T_world_root, theta, mode):
+    num_cameras, cap = matches.valid.shape
+    cam_index = jnp.repeat(jnp.arange(num_cameras, dtype=jnp.int32), cap)
+    if mode == "surface":
+        pixel, p_model, part, ok = jax.vmap(_surface_rows)(matches.p_t, matches.p_t1, matches.valid, rendered)
+    else:
+        model = rigid_model(mesh.vertices.dtype) if model is None else model
+        v_world = _world_points(model, T_world_root, theta, mesh.vertices, mesh.vertex_part)
+
+        def vertex_pixels(cam):
+            return _project(cam, None, v_world)[0]
+
+        cams = cameras if cameras.K.ndim == 3 else jax.tree.map(lambda x: x[None], cameras)
+        vertex_px = jax.vmap(vertex_pixels)(cams).astype(matches.p_t.dtype)
+        pixel, p_model, part, ok = jax.vmap(lambda a, b, v, r, vp: _vertex_rows(a, b, v, r, vp, mesh, params.max_vertex_px))(
+            matches.p_t, matches.p_t1, matches.valid, rendered, vertex_px
+        )
+    dtype = cameras.K.dtype
+    w = jnp.where(ok.reshape(-1), jnp.asarray(weight, dtype), 0.0)
+    return correspondences_from_pixels(
+        cameras if cameras.K.ndim == 3 else jax.tree.map(lambda x: x[None], cameras),
+        pixel.reshape(-1, 2).astype(dtype),
+        cam_index,
+        p_model.reshape(-1, 3).astype(dtype),
+        part.reshape(-1),
+        w,
+        undistort=False,
+        cue=Cue.SIFT,
+    )
+
+
+def sift_correspondences(
+    matches: SiftMatches,
+    rendered: RenderOutput,
+    cameras: Camera,
+    params: SiftParams,
+    weight=1.0,
+    mode: str = "surface",
+    mesh: Mesh | None = None,
+    model: KinematicModel | None = None,
+    T_world_root=None,
+    theta=None,
+) -> Correspondences:
+    """2D-3D correspondences at t+1 from (filtered) matches t → t+1 and the render at χ_t. Jittable.
+
+    Args:
+        matches: `SiftMatches` (C cameras, capacity N); invalid rows become zero-weight rows.
+        rendered: the model rendered at χ_t in each camera, stacked on a leading C axis.
+        cameras: stacked rig of C cameras.
+        params: `max_vertex_px` bounds the keypoint-vertex distance in "vertex" mode.
+        weight: weight of every surviving row (array; the tracker's fusion rescales it).
+        mode: "surface" (default) or "vertex" (the paper's closest projected visible vertex; needs
+            `mesh`, `T_world_root` (and `theta`, `model` for an articulated model)).
+
+    Returns:
+        `Correspondences` of capacity C·N with `cue = Cue.SIFT`; pixels are ideal (undistorted):
+        keypoints from distorted images should be undistorted before matching.
+    """
+    if mode not in ("surface", "vertex"):
+        raise ValueError(f"sift_correspondences: mode must be 'surface' or 'vertex', got {mode!r}")
+    if mode == "vertex" and (mesh is None or T_world_root is None):
+        raise ValueError("sift_correspondences: mode 'vertex' needs mesh and T_world_root (the pose at t)")
+    if mode == "vertex":
+        dtype = mesh.vertices.dtype
+        T_world_root = jnp.asarray(T_world_root, dtype)
+        joints = 0 if model is None else model.num_joints
+        theta = jnp.zeros((joints,), dtype) if theta is None else jnp.asarray(theta, dtype)
+    return _sift_correspondences(matches, rendered, cameras, params, weight, mesh, model, T_world_root, theta, mode)
+
+
+@eqx.filter_jit
+@eqx.debug.assert_max_traces(max_traces=None)
+def backprojection_filter(
+    corr: Correspondences, cameras: Camera, model: KinematicModel, T_world_root, theta, params: SiftParams
+) -> Correspondences:
+    """Zero the weight of rows whose model point, projected with a preliminary pose (T_world_root,
+    theta), lands farther than `params.backprojection_px` from the row's pixel. Jittable.
+
+    Args:
+        corr: correspondences (ideal pixels in `corr.pixel`).
+        cameras: stacked rig (or one camera).
+        model: kinematic tree; T_world_root (4, 4), theta (J,): the preliminary pose at t+1.
+    """
+    dtype = corr.n.dtype
+    T_world_root = jnp.asarray(T_world_root, dtype)
+    theta = jnp.asarray(theta, dtype)
+    p_world = _world_points(model, T_world_root, theta, corr.p_model, corr.part)
+    px, z = _project(cameras, corr.camera, p_world)
+    close = (jnp.linalg.norm(px - corr.pixel, axis=-1) <= params.backprojection_px) & (z > 0)
+    return corr.with_weight(jnp.where(close, corr.weight, 0.0))
+
+
+@eqx.filter_jit
+def reprojection_errors(corr: Correspondences, cameras: Camera, model: KinematicModel, T_world_root, theta=None):
+    """(N,) pixel distance between each row's pixel and its model point projected at a pose (e.g. the
+    ground truth at t+1, for evaluation). Jittable."""
+    dtype = corr.n.dtype
+    theta = jnp.zeros((model.num_joints,), dtype) if theta is None else jnp.asarray(theta, dtype)
+    p_world = _world_points(model, jnp.asarray(T_world_root, dtype), theta, corr.p_model, corr.part)
+    px, _ = _project(cameras, corr.camera, p_world)
+    return jnp.linalg.norm(px - corr.pixel, axis=-1)
