@@ -7,6 +7,12 @@ jaxtrack, a tracker's local solver, starts from the true pose perturbed by up to
 (mm) of T_cam_obj. Times: one solve after compilation (median of calls) and the batched throughput of
 a vmapped solve over 1024 scenes.
 
+Joint count: compile time (trace + lower + XLA compile of `jit(vmap(solve_pose))`, batch 64, ~200
+points, float32) and batched throughput for articulated chains with J = 0, 3, 12, 24 joints. The same
+rows are measured with the normal-equation builder of commit 33dcef2 (`legacy_plane_normal_equations`
+below, D(D+1)/2 separately traced column products and a Python loop over joints) swapped into the
+solver, so the table shows before and after in one run on one machine.
+
     python experiments/bench_pose.py            # full table, writes experiments/results/bench_pose.md
     python experiments/bench_pose.py --quick    # a small smoke run (used by the tests)
 """
@@ -14,6 +20,7 @@ a vmapped solve over 1024 scenes.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import pathlib
 import platform
 import time
@@ -24,7 +31,9 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxtrack as jt
-from jaxtrack.synth import perturb_pose, random_pose_scene
+import jaxtrack.solve._pose_solver as pose_solver_module
+from jaxtrack.geometry import part_transforms, se3_adjoint
+from jaxtrack.synth import demo_chain, perturb_pose, random_pose_scene
 
 RESULTS = pathlib.Path(__file__).resolve().parent / "results"
 
@@ -40,7 +49,7 @@ def make_scenes(num_points, noise, trials, seed0):
 
 def opencv_solve(scene, flag):
     K = np.asarray(scene.cameras.K[0], np.float64)
-    ok, rvec, tvec = cv2.solvePnP(scene.p_model.astype(np.float64), scene.pixel.astype(np.float64), K, None, flags=flag)
+    _, rvec, tvec = cv2.solvePnP(scene.p_model.astype(np.float64), scene.pixel.astype(np.float64), K, None, flags=flag)
     R, _ = cv2.Rodrigues(rvec)
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, tvec.ravel()
@@ -74,17 +83,17 @@ def run(point_counts, noises, trials, batch, seed=0):
                 T0 = jnp.asarray(perturb_pose(rng, sc.T_world_root, 0.2, 20.0), jnp.float32)
                 sol = solve(corr, T0)
                 jax.block_until_ready(sol)
-                times["jaxtrack"].append(time_call(lambda: jax.block_until_ready(solve(corr, T0)), 3))
+                times["jaxtrack"].append(time_call(lambda corr=corr, T0=T0: jax.block_until_ready(solve(corr, T0)), 3))
                 est = {"jaxtrack": T_cam_world @ np.asarray(sol.T_world_root, np.float64)}
                 for name in ("SOLVEPNP_SQPNP", "SOLVEPNP_ITERATIVE"):
                     flag = getattr(cv2, name)
                     est[name] = opencv_solve(sc, flag)
-                    times[name].append(time_call(lambda: opencv_solve(sc, flag), 3))
+                    times[name].append(time_call(lambda sc=sc, flag=flag: opencv_solve(sc, flag), 3))
                 for name, T in est.items():
                     errors[name].append((rotation_error_deg(T[:3, :3], gt[:3, :3]), float(np.linalg.norm(T[:3, 3] - gt[:3, 3]))))
             ref = np.mean(errors["SOLVEPNP_SQPNP"], axis=0)
-            for name in errors:
-                e = np.asarray(errors[name])
+            for name, name_errors in errors.items():
+                e = np.asarray(name_errors)
                 mean = e.mean(axis=0)
                 rows.append(
                     (n, noise, name, mean[0], mean[1], np.median(e[:, 0]), np.median(e[:, 1]), mean[0] / ref[0], mean[1] / ref[1], 1e3 * np.mean(times[name]))
@@ -95,19 +104,103 @@ def run(point_counts, noises, trials, batch, seed=0):
         T0 = jnp.asarray(np.stack([perturb_pose(rng, s.T_world_root, 0.2, 20.0) for s in scenes]), jnp.float32)
         out = batched(corr, T0)
         jax.block_until_ready(out)
-        dt = time_call(lambda: jax.block_until_ready(batched(corr, T0)), 5)
+        dt = time_call(lambda corr=corr, T0=T0: jax.block_until_ready(batched(corr, T0)), 5)
         ok = float(np.mean(np.asarray(out.status) == 0))
         throughput.append((n, batch, batch / dt, float(np.mean(np.asarray(out.num_steps))), ok))
     return rows, throughput
 
 
-def to_markdown(rows, throughput, trials, command):
+def legacy_plane_normal_equations(model, T_world_root, theta, p_model, part, normals, offsets, weight):
+    """The builder of commit 33dcef2, kept here only as the benchmark's "before" (same outputs).
+
+    Separate (N, 2) columns, a Python loop over joints and D(D+1)/2 traced products for H: the traced
+    program, and with it XLA's compile time, grows with D² = (6 + J)².
+    """
+    T_parts = part_transforms(model, T_world_root, theta)
+    T = T_parts[0] if model.num_parts == 1 else T_parts[part]
+    x, y, z = p_model[..., 0], p_model[..., 1], p_model[..., 2]
+    a = [T[..., i, 0] * x + T[..., i, 1] * y + T[..., i, 2] * z + T[..., i, 3] for i in range(3)]
+    b = [normals[..., k] for k in range(3)]
+    a2 = [c[..., None] for c in a]
+    s = b[0] * a2[0] + b[1] * a2[1] + b[2] * a2[2] - offsets
+    cross = (a2[1] * b[2] - a2[2] * b[1], a2[2] * b[0] - a2[0] * b[2], a2[0] * b[1] - a2[1] * b[0])
+    cols = list(b) + list(cross)
+    if model.num_joints:
+        anchors = T_parts[model.joint_parent_part]
+        twists = jnp.einsum("jab,jb->ja", se3_adjoint(anchors), model.joint_twists.astype(s.dtype))
+        on_path = model.part_joints[part].astype(s.dtype)
+        for j in range(model.num_joints):
+            cols.append(sum(twists[j, c] * cols[c] for c in range(6)) * on_path[:, j : j + 1])
+    w = weight[..., None]
+    wcols = [w * c for c in cols]
+    dim = len(cols)
+    entries = {(d, e): jnp.sum(wcols[d] * cols[e]) for d in range(dim) for e in range(d, dim)}
+    H = jnp.stack([jnp.stack([entries[min(d, e), max(d, e)] for e in range(dim)]) for d in range(dim)])
+    g = jnp.stack([jnp.sum(wc * s) for wc in wcols])
+    return H, g, jnp.sum(w * s * s)
+
+
+@contextlib.contextmanager
+def normal_equation_builder(name):
+    """Swap the solver's normal-equation builder ("new" = the library's, "legacy" = 33dcef2's)."""
+    if name == "new":
+        yield
+        return
+    original = pose_solver_module.plane_normal_equations
+    pose_solver_module.plane_normal_equations = legacy_plane_normal_equations
+    jax.clear_caches()  # the solver's own jit cache would otherwise hand back the other program
+    try:
+        yield
+    finally:
+        pose_solver_module.plane_normal_equations = original
+        jax.clear_caches()
+
+
+def joint_scene_batch(num_joints, num_points, batch, rng):
+    """`batch` random poses of an arm with `num_joints` links (about 300 mm long), 2 cameras, 1 px noise."""
+    model = demo_chain(num_joints, link_length=300.0 / num_joints, dtype=np.float32) if num_joints else jt.rigid_model(jnp.float32)
+    scenes = [random_pose_scene(5000 + k, num_points=num_points, noise_px=1.0, num_cameras=2, model=model, dtype=np.float32) for k in range(batch)]
+    corr = jax.tree_util.tree_map(
+        lambda *xs: jnp.stack(xs),
+        *[jt.make_correspondences(s.cameras, s.pixel, s.p_model, camera_index=s.camera_index, part=s.part) for s in scenes],
+    )
+    T0 = jnp.asarray(np.stack([perturb_pose(rng, s.T_world_root, 0.1, 10.0) for s in scenes]), jnp.float32)
+    theta0 = jnp.asarray(np.stack([s.theta + rng.uniform(-0.05, 0.05, num_joints) for s in scenes]), jnp.float32)
+    return model, corr, T0, theta0
+
+
+def run_joints(joint_counts, legacy_joint_counts, num_points, batch, seed=0):
+    """Compile seconds, HLO size and vmapped solves/s per joint count, new and legacy builders."""
+    out = []
+    for builder, counts in (("legacy (33dcef2)", legacy_joint_counts), ("new", joint_counts)):
+        with normal_equation_builder("legacy" if builder.startswith("legacy") else "new"):
+            for num_joints in counts:
+                model, corr, T0, theta0 = joint_scene_batch(num_joints, num_points, batch, np.random.default_rng(seed))
+                batched = jax.jit(jax.vmap(lambda c, T, th, model=model: jt.solve_pose(model, c, T, th)))
+                t0 = time.perf_counter()
+                lowered = batched.lower(corr, T0, theta0)
+                hlo_lines = lowered.as_text().count("\n")
+                compiled = lowered.compile()
+                compile_s = time.perf_counter() - t0
+                sol = compiled(corr, T0, theta0)
+                jax.block_until_ready(sol)
+                dt = time_call(lambda f=compiled, c=corr, T=T0, th=theta0: jax.block_until_ready(f(c, T, th)), 15)
+                ok = float(np.mean(np.asarray(sol.status) == 0))
+                row = (builder, num_joints, model.num_dof, compile_s, hlo_lines, batch / dt, float(np.mean(np.asarray(sol.num_steps))), ok)
+                print("joints:", row, flush=True)
+                out.append(row)
+    return out
+
+
+def to_markdown(rows, throughput, trials, command, joint_rows=(), joint_points=0, joint_batch=0):
     lines = [
         "# Pose solver benchmark",
         "",
         f"Command: `{command}`  ",
-        f"Machine: {platform.machine()}, {jax.device_count()} JAX device(s) ({jax.devices()[0].platform}), "
-        f"JAX {jax.__version__}, OpenCV {cv2.__version__}, float32, {trials} scenes per row.  ",
+        (
+            f"Machine: {platform.machine()}, {jax.device_count()} JAX device(s) ({jax.devices()[0].platform}), "
+            f"JAX {jax.__version__}, OpenCV {cv2.__version__}, float32, {trials} scenes per row.  "
+        ),
         "jaxtrack starts from the truth perturbed by ≤ 0.2 rad / 20 mm; OpenCV solves from scratch.",
         "",
         "| points | noise (px) | method | rot err mean (deg) | trans err mean (mm) | rot median | trans median | rot / SQPNP | trans / SQPNP | ms / solve |",
@@ -124,6 +217,20 @@ def to_markdown(rows, throughput, trials, command):
     ]
     for n, b, sps, steps, ok in throughput:
         lines.append(f"| {n} | {b} | {sps:,.0f} | {steps:.2f} | {100 * ok:.1f}% |")
+    if joint_rows:
+        lines += [
+            "",
+            (
+                f"Joint count (arm of J links, 2 cameras, {joint_points} points, 1 px noise, vmap {joint_batch}, "
+                "float32; compile = trace + lower + XLA compile of the batched solve; legacy = the normal-equation "
+                "builder of 33dcef2 swapped into the same solver):"
+            ),
+            "",
+            "| normal equations | J | D | compile (s) | HLO lines | solves / s | mean GN steps | converged |",
+            "|---|---:|---:|---:|---:|---:|---:|---:|",
+        ]
+        for builder, joints, dof, compile_s, hlo, sps, steps, ok in joint_rows:
+            lines.append(f"| {builder} | {joints} | {dof} | {compile_s:.1f} | {hlo:,} | {sps:,.0f} | {steps:.2f} | {100 * ok:.1f}% |")
     return "\n".join(lines) + "\n"
 
 
@@ -132,14 +239,29 @@ def main(argv=None):
     parser.add_argument("--quick", action="store_true", help="small smoke run; writes bench_pose_quick.md")
     parser.add_argument("--trials", type=int, default=None)
     parser.add_argument("--out", type=pathlib.Path, default=None)
+    parser.add_argument("--joints", type=str, default=None, help="joint counts, e.g. 0,3,12,24 (quick default: none)")
+    parser.add_argument("--legacy-joints", type=str, default=None, help="joint counts for the 33dcef2 builder")
+    parser.add_argument("--skip-pnp", action="store_true", help="only the joint-count section")
     args = parser.parse_args(argv)
+
+    def parse(text):
+        return [int(v) for v in text.split(",") if v.strip()]
+
     if args.quick:
         counts, noises, trials, batch = [50], [1.0], args.trials or 5, 64
+        joints, legacy_joints = parse(args.joints or ""), parse(args.legacy_joints or "")
     else:
         counts, noises, trials, batch = [50, 200, 1000], [0.5, 1.0, 2.0], args.trials or 100, 1024
-    rows, throughput = run(counts, noises, trials, batch)
+        # The legacy builder at J = 24 alone compiles for minutes; 0-12 show its growth.
+        joints = parse("0,3,12,24" if args.joints is None else args.joints)
+        legacy_joints = parse("0,3,12" if args.legacy_joints is None else args.legacy_joints)
+    joint_points, joint_batch = 200, 64
+    rows, throughput = ([], []) if args.skip_pnp else run(counts, noises, trials, batch)
+    joint_rows = run_joints(joints, legacy_joints, joint_points, joint_batch) if joints or legacy_joints else []
     command = "python experiments/bench_pose.py" + (" --quick" if args.quick else "")
-    table = to_markdown(rows, throughput, trials, command)
+    if args.joints is not None or args.legacy_joints is not None or args.skip_pnp:
+        command += (f" --joints {args.joints or ''} --legacy-joints {args.legacy_joints or ''}") + (" --skip-pnp" if args.skip_pnp else "")
+    table = to_markdown(rows, throughput, trials, command, joint_rows, joint_points, joint_batch)
     print(table)
     out = args.out or RESULTS / ("bench_pose_quick.md" if args.quick else "bench_pose.md")
     out.parent.mkdir(parents=True, exist_ok=True)

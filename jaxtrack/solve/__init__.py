@@ -10,7 +10,9 @@ from ._pose_solver import PoseSolution as PoseSolution
 from ._pose_solver import PoseStatus as PoseStatus
 from ._pose_solver import SolverConfig as SolverConfig
 from ._pose_solver import estimate_pose as estimate_pose
+from ._pose_solver import fraction_behind_cameras as fraction_behind_cameras
 from ._pose_solver import input_status as input_status
 from ._pose_solver import model_points_world as model_points_world
 from ._pose_solver import plucker_residuals as plucker_residuals
+from ._pose_solver import root_conditioning as root_conditioning
 from ._pose_solver import solve_pose as solve_pose

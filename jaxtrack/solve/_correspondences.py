@@ -62,7 +62,7 @@ class Correspondences(eqx.Module):
         """Number of rows with positive weight produced by `cue` (traced scalar)."""
         return jnp.sum((self.weight > 0) & (self.cue == cue), axis=-1)
 
-    def with_weight(self, weight) -> "Correspondences":
+    def with_weight(self, weight) -> Correspondences:
         """The same set with new weights (e.g. a cue-weight sweep under vmap)."""
         return eqx.tree_at(lambda c: c.weight, self, jnp.asarray(weight, self.weight.dtype))
 

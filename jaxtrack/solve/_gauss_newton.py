@@ -12,71 +12,138 @@ Derivatives of the solution come from the implicit function theorem on the optim
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
+from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
+
+
+class GaussNewtonState(eqx.Module):
+    """Loop state of `damped_gauss_newton` (named, in the manner of optimistix's `_GaussNewtonState`).
+
+    Attributes:
+        x: current iterate (any pytree), the last accepted one.
+        hessian: (D, D) H = JᵀWJ linearised at x (eq. 5).
+        gradient: (D,) g = JᵀW s at x.
+        cost: Σ w |s|² at x.
+        damping: Marquardt factor λ.
+        num_steps: int32 steps taken (accepted or rejected).
+        done: bool, a stopping test fired (or the start was non-finite).
+    """
+
+    x: Any
+    hessian: jax.Array
+    gradient: jax.Array
+    cost: jax.Array
+    damping: jax.Array
+    num_steps: jax.Array
+    done: jax.Array
+
+
+class GaussNewtonResult(eqx.Module):
+    """Outcome of `damped_gauss_newton`.
+
+    Attributes:
+        x: the final iterate (the last accepted one).
+        hessian: (D, D) H at x, for conditioning checks by the caller.
+        converged: bool, a stopping test fired on a finite iterate.
+        num_steps: int32 steps taken.
+        nonfinite: bool, the cost or the iterate is not finite.
+    """
+
+    x: Any
+    hessian: jax.Array
+    converged: jax.Array
+    num_steps: jax.Array
+    nonfinite: jax.Array
+
+
+def _select(pred, new, old):
+    return jax.tree_util.tree_map(lambda u, v: jnp.where(pred, u, v), new, old)
 
 
 def damped_gauss_newton(
     normal_equations: Callable,
     retract: Callable,
     magnitude: Callable,
-    x0,
+    x0: Any,
     max_steps: int,
     rtol: float,
     atol: float,
-):
+) -> GaussNewtonResult:
     """Minimise a least-squares cost over a state x (any pytree) moved by `retract(x, δ)`.
 
     Args:
         normal_equations: x ↦ (H (D, D), g (D,), cost) linearised at x.
         retract: (x, δ) ↦ x ⊕ δ, e.g. a left SE(3) increment; δ = 0 must give x.
         magnitude: x ↦ scalar scale of x for the relative step test.
+        x0: start.
+        max_steps: iteration budget (static).
+        rtol, atol: step tolerances (static).
 
-    A step solves (H + λ (diag H + ε)) δ = −g; it is accepted when the cost does not increase
+    A step solves (H + λ (diag H + ε_H)) δ = −g; it is accepted when the cost does not increase
     (λ ×0.3), else rejected (λ ×10). Converged when a step has |δ|_∞ < atol + rtol·|x|, or when
-    even huge damping cannot lower the cost (machine precision). One `lax.while_loop`: no unrolling, vmappable, no recompilation.
+    even huge damping cannot lower the cost (machine precision). One `lax.while_loop`: no
+    unrolling, vmappable, no recompilation.
 
     Returns:
-        (x, converged, num_steps, nonfinite)
+        GaussNewtonResult.
     """
-    system0 = normal_equations(x0)
-    dtype = system0[2].dtype
-    eye = jnp.eye(system0[1].shape[0], dtype=dtype)
-    select = lambda c, new, old: jax.tree_util.tree_map(lambda u, v: jnp.where(c, u, v), new, old)  # noqa: E731
+    H0, g0, cost0 = normal_equations(x0)
+    dtype = cost0.dtype
+    eps = jnp.finfo(dtype).eps
+    eye = jnp.eye(g0.shape[0], dtype=dtype)
 
-    def body(state):
-        x, (H, g, c), lam, step, _ = state
-        diag = jnp.diagonal(H)
-        # The floor on the diagonal keeps an unobserved joint (zero column) damped, not singular.
-        damp = lam * (diag + 1e-9 * (jnp.max(diag) + 1.0))
-        delta = jnp.linalg.solve(H + damp * eye, -g)
-        x_new = retract(x, delta)
-        system_new = normal_equations(x_new)
-        c_new = system_new[2]
+    def body(state: GaussNewtonState) -> GaussNewtonState:
+        diag = jnp.diagonal(state.hessian)
+        # The floor on the diagonal keeps an unobserved joint (zero column) damped, not singular;
+        # √eps of the largest entry is far below any observed direction's curvature.
+        damp = state.damping * (diag + jnp.sqrt(eps) * (jnp.max(diag) + 1.0))
+        delta = jnp.linalg.solve(state.hessian + damp * eye, -state.gradient)
+        x_new = retract(state.x, delta)
+        H_new, g_new, cost_new = normal_equations(x_new)
         # Accept within rounding of the cost: at the optimum the cost is flat to ~√eps in y, so a
         # strict decrease test would reject the last, accurate Gauss-Newton steps.
-        accept = jnp.isfinite(c_new) & (c_new <= c * (1 + 16 * jnp.finfo(dtype).eps))
+        accept = jnp.isfinite(cost_new) & (cost_new <= state.cost * (1 + 16 * eps))
         # A step below tolerance ends the loop whether or not it lowered the cost: a rejected tiny
         # step means the cost sits at its rounding floor, and cost-change tests are unreliable there
         # (near a minimum the cost is flat to ~√eps in x).
-        small_step = jnp.max(jnp.abs(delta)) < atol + rtol * magnitude(x)
-        done = small_step | (lam > 1e10)
-        lam = jnp.clip(jnp.where(accept, lam * 0.3, lam * 10.0), 1e-12, 1e16)
-        return select(accept, x_new, x), select(accept, system_new, (H, g, c)), lam, step + 1, done
+        small_step = jnp.max(jnp.abs(delta)) < atol + rtol * magnitude(state.x)
+        damping = jnp.where(accept, state.damping * 0.3, state.damping * 10.0)
+        return GaussNewtonState(
+            x=_select(accept, x_new, state.x),
+            hessian=jnp.where(accept, H_new, state.hessian),
+            gradient=jnp.where(accept, g_new, state.gradient),
+            cost=jnp.where(accept, cost_new, state.cost),
+            damping=jnp.clip(damping, 1e-12, 1e16),
+            num_steps=state.num_steps + 1,
+            done=small_step | (state.damping > 1e10),
+        )
 
-    def cond(state):
-        return (state[3] < max_steps) & ~state[4]
+    def cond(state: GaussNewtonState):
+        return (state.num_steps < max_steps) & ~state.done
 
     # A non-finite start ends the loop at once; the caller reports it as NONFINITE.
-    init = (x0, system0, jnp.asarray(1e-3, dtype), jnp.asarray(0, jnp.int32), ~jnp.isfinite(system0[2]))
-    x, (_, _, c), _, steps, done = jax.lax.while_loop(cond, body, init)
-    finite = jnp.isfinite(c) & jnp.all(jnp.stack([jnp.all(jnp.isfinite(v)) for v in jax.tree_util.tree_leaves(x)]))
-    return x, done & finite, steps, ~finite
+    init = GaussNewtonState(
+        x=x0,
+        hessian=H0,
+        gradient=g0,
+        cost=cost0,
+        damping=jnp.asarray(1e-3, dtype),
+        num_steps=jnp.asarray(0, jnp.int32),
+        done=~jnp.isfinite(cost0),
+    )
+    final = jax.lax.while_loop(cond, body, init)
+    leaves_finite = [jnp.all(jnp.isfinite(v)) for v in jax.tree_util.tree_leaves(final.x)]
+    finite = jnp.isfinite(final.cost) & jnp.all(jnp.stack(leaves_finite))
+    return GaussNewtonResult(
+        x=final.x, hessian=final.hessian, converged=final.done & finite, num_steps=final.num_steps, nonfinite=~finite
+    )
 
 
-def solve_implicit(residual_fn: Callable, iterate: Callable, y0, args):
+def solve_implicit(residual_fn: Callable, iterate: Callable, y0: jax.Array, args: Any):
     """Run `iterate(y0) -> (y*, aux)` and differentiate y* implicitly w.r.t. `args` (not y0).
 
     Args:
@@ -99,7 +166,9 @@ def solve_implicit(residual_fn: Callable, iterate: Callable, y0, args):
         scale = jnp.sqrt(jnp.where(diag > 0, diag, 1.0))
         A_scaled = A / (scale[:, None] * scale[None, :])
         eye = jnp.eye(A.shape[0], dtype=A.dtype)
-        return jnp.linalg.solve(A_scaled + 1e-12 * eye, rhs / scale) / scale
+        # eps^(3/4): ~1e-12 in float64, ~7e-6 in float32 (a ridge below eps would not regularise).
+        ridge = jnp.finfo(A.dtype).eps ** 0.75
+        return jnp.linalg.solve(A_scaled + ridge * eye, rhs / scale) / scale
 
     def solve(_, guess):
         y, aux = iterate(guess)

@@ -3,8 +3,10 @@
 Minimises Σ_i w_i |T(χ) X_i × n_i − m_i|² over χ = (ξ, Θ) (eq. 4). The root pose is parametrised
 as a left increment δ on the initial pose, T_world_root = exp(δ̂) T_init, which is the paper's
 linearisation point (eq. 5) and keeps the unknowns near zero; joint angles are solved directly.
-Optimistix runs the iterations (`throw=False`: failures come back as a status), and its implicit
-adjoint gives derivatives of the solution with respect to weights, points and lines.
+A damped Gauss-Newton on the (6+J)² normal equations runs the iterations (optimistix's
+Levenberg-Marquardt is the reference backend); failures come back as a `Status`, never as an
+exception, and implicit differentiation gives derivatives of the solution with respect to weights,
+points and lines.
 """
 
 from __future__ import annotations
@@ -16,8 +18,9 @@ import lineax as lx
 import numpy as np
 import optimistix as optx
 
-from .._status import Status
+from .._status import Status, check_status, first_failure, is_usable, status_where
 from ..geometry import (
+    Camera,
     KinematicModel,
     part_transforms,
     point_line_residual,
@@ -28,8 +31,7 @@ from ..geometry import (
 )
 from ._correspondences import Correspondences
 from ._gauss_newton import damped_gauss_newton, solve_implicit
-from ._normal_equations import line_planes, plane_normal_equations, plane_residuals_and_columns
-
+from ._normal_equations import line_planes, plane_normal_equations, plane_residuals
 
 # The solver reports the library-wide status codes; `PoseStatus` is kept as its old name.
 PoseStatus = Status
@@ -59,6 +61,10 @@ class SolverConfig(eqx.Module):
             raise ValueError(f"SolverConfig.max_steps must be ≥ 1, got {self.max_steps}")
 
 
+# The default settings as one module-level instance (a call in the signature would run at import anyway).
+DEFAULT_CONFIG = SolverConfig()
+
+
 class PoseSolution(eqx.Module):
     """Result of `solve_pose`.
 
@@ -81,7 +87,7 @@ class PoseSolution(eqx.Module):
     @property
     def ok(self):
         """True where the pose can be used (converged, or budget ran out on a finite iterate)."""
-        return self.status <= PoseStatus.MAX_STEPS
+        return is_usable(self.status)
 
 
 def _safe_sqrt(x):
@@ -90,7 +96,43 @@ def _safe_sqrt(x):
     return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, 1.0)), 0.0)
 
 
-def model_points_world(model: KinematicModel, T_world_root, theta, p_model, part):
+def rigidity_tolerance(dtype) -> float:
+    """Tolerance of the rigid-transform test on T_init: 10 √eps of the solve dtype.
+
+    ~1.5e-7 in float64 (poses stored with 8 significant digits, as BOP files are, pass) and ~3.5e-3 in
+    float32 (a float64 pose rounded to float32 passes); a zero, scaled or sheared block does not.
+    """
+    return 10.0 * float(np.sqrt(np.finfo(dtype).eps))
+
+
+def degeneracy_tolerance(dtype) -> float:
+    """Smallest acceptable λ_min/λ_max of the Jacobi-scaled root block of H: eps^(3/4) of the dtype.
+
+    ~1.8e-12 in float64, ~6.4e-6 in float32. Coincident or collinear model points give 0 (measured,
+    both dtypes); random well-posed sets of 4 points seen by one camera gave ≥ 3.6e-3 over 40 draws
+    (median 0.06, both dtypes), so the margin is wide in either direction.
+    """
+    return float(np.finfo(dtype).eps ** 0.75)
+
+
+def root_conditioning(H: jax.Array) -> jax.Array:
+    """λ_min / λ_max of the Jacobi-scaled 6x6 root block of H (eq. 5), in [0, 1]; jittable.
+
+    Jacobi scaling removes the units (mm for translations, rad for rotations) so the ratio measures
+    rank, not scale. Joint columns are left out: an unobserved joint is damped, not degenerate.
+    """
+    block = H[:6, :6]
+    diag = jnp.diagonal(block)
+    scale = jnp.sqrt(jnp.where(diag > 0, diag, 1.0))
+    scaled = block / (scale[:, None] * scale[None, :])
+    eig = jnp.linalg.eigvalsh(scaled)
+    top = eig[-1]
+    ratio = jnp.where(top > 0, eig[0] / jnp.where(top > 0, top, 1.0), 0.0)
+    # A zero diagonal (a root direction no row constrains) is rank deficiency however the rest looks.
+    return jnp.where(jnp.all(diag > 0) & jnp.isfinite(ratio), jnp.clip(ratio, 0.0, 1.0), 0.0)
+
+
+def model_points_world(model: KinematicModel, T_world_root: jax.Array, theta: jax.Array, p_model: jax.Array, part: jax.Array):
     """World coordinates T(χ) X of model points on their parts (eq. 2). p_model (N, 3), part (N,)."""
     T_parts = part_transforms(model, T_world_root, theta)
     if model.num_parts == 1:  # rigid: skip the gather
@@ -98,112 +140,202 @@ def model_points_world(model: KinematicModel, T_world_root, theta, p_model, part
     return transform_points(T_parts[part], p_model)
 
 
-def plucker_residuals(model: KinematicModel, T_world_root, theta, corr: Correspondences):
+def plucker_residuals(model: KinematicModel, T_world_root: jax.Array, theta: jax.Array, corr: Correspondences):
     """Unweighted residuals r_i = T(χ) X_i × n_i − m_i (eq. 4), (N, 3), world frame, mm."""
     p_world = model_points_world(model, T_world_root, theta, corr.p_model, corr.part)
     return point_line_residual(p_world, corr.n, corr.m)
 
 
-def _weighted_residual(y, args):
+class PoseProblem(eqx.Module):
+    """The data of one solve (the `args` of the residual and of the iterations).
+
+    Attributes:
+        model: kinematic tree.
+        corr: correspondences with the geometry of zero-weight rows zeroed (`_sanitize`).
+        T_init: (4, 4) the chart's origin: T_world_root = exp(δ̂) T_init.
+        sqrt_weight: (N,) √w, zero for padding.
+        normals, offsets: (N, 2, 3), (N, 2) the two planes through each line (`line_planes`).
+    """
+
+    model: KinematicModel
+    corr: Correspondences
+    T_init: jax.Array
+    sqrt_weight: jax.Array
+    normals: jax.Array
+    offsets: jax.Array
+
+
+def _weighted_residual(y: jax.Array, problem: PoseProblem) -> jax.Array:
     """Chart residual: y = (δ, Θ) with T_world_root = exp(δ̂) T_init; plane form of eq. 4, (N, 2)."""
-    model, corr, T_init, sqrt_w, normals, offsets = args
-    T_root = se3_exp(y[:6]) @ T_init
-    s, _ = plane_residuals_and_columns(model, T_root, y[6:], corr.p_model, corr.part, normals, offsets)
-    return s * sqrt_w[:, None]
+    T_root = se3_exp(y[:6]) @ problem.T_init
+    corr = problem.corr
+    s = plane_residuals(problem.model, T_root, y[6:], corr.p_model, corr.part, problem.normals, problem.offsets)
+    return s * problem.sqrt_weight[:, None]
 
 
-def _gauss_newton_iterate(y0, args, config: "SolverConfig"):
-    """Damped Gauss-Newton on (T_world_root, Θ) with left increments (the paper's eq. 5 update)."""
-    model, corr, T_init, sqrt_w, normals, offsets = args
-    weight = sqrt_w**2
+def _gauss_newton_iterate(y0: jax.Array, problem: PoseProblem, config: SolverConfig):
+    """Damped Gauss-Newton on (T_world_root, Θ) with left increments (the paper's eq. 5 update).
+
+    Returns:
+        y (D,) in the chart of T_init, and aux (converged, num_steps, nonfinite, root conditioning).
+    """
+    corr, weight = problem.corr, problem.sqrt_weight**2
 
     def normal_equations(x):
         T_root, theta = x
-        return plane_normal_equations(model, T_root, theta, corr.p_model, corr.part, normals, offsets, weight)
+        # Looked up at trace time, so experiments/bench_pose.py can swap in the builder it compares.
+        return plane_normal_equations(
+            problem.model, T_root, theta, corr.p_model, corr.part, problem.normals, problem.offsets, weight
+        )
 
     def retract(x, delta):
         T_root, theta = x
         return se3_exp(delta[:6]) @ T_root, theta + delta[6:]
 
     def magnitude(x):
-        T_root, theta = x
+        T_root, _ = x
         return jnp.maximum(jnp.max(jnp.abs(T_root[:3, 3])), 1.0)
 
-    x0 = (se3_exp(y0[:6]) @ T_init, y0[6:])
-    (T_root, theta), converged, steps, nonfinite = damped_gauss_newton(
-        normal_equations, retract, magnitude, x0, config.max_steps, config.rtol, config.atol
-    )
+    x0 = (se3_exp(y0[:6]) @ problem.T_init, y0[6:])
+    result = damped_gauss_newton(normal_equations, retract, magnitude, x0, config.max_steps, config.rtol, config.atol)
+    T_root, theta = result.x
     # Back to the chart of T_init (exact while the rotation from T_init stays below π).
-    y = jnp.concatenate([se3_log(T_root @ se3_inverse(T_init)), theta])
-    return y, (converged, steps, nonfinite)
+    y = jnp.concatenate([se3_log(T_root @ se3_inverse(problem.T_init)), theta])
+    return y, (result.converged, result.num_steps, result.nonfinite, root_conditioning(result.hessian))
 
 
-def _sanitize(corr: Correspondences):
+def _sanitize(corr: Correspondences) -> Correspondences:
     """Zero the geometry of rows that carry no weight so that padding can never poison the sums."""
     live = corr.weight > 0
-    clean = lambda a: jnp.where(live[:, None], jnp.nan_to_num(a), 0.0)  # noqa: E731
+    clean = lambda a: jnp.where(live[:, None], jnp.nan_to_num(a), 0.0)
     return eqx.tree_at(lambda c: (c.n, c.m, c.p_model), corr, (clean(corr.n), clean(corr.m), clean(corr.p_model)))
 
 
-def input_status(model: KinematicModel, corr: Correspondences, T_init, theta_init):
-    """PoseStatus.INVALID_INPUT / TOO_FEW / OK for the inputs alone (jittable)."""
+def _rigid_transform_defect(T: jax.Array) -> jax.Array:
+    """max(|RᵀR − I|, |last row − (0, 0, 0, 1)|), +inf where det R ≤ 0 (a reflection or a collapse)."""
+    R = T[:3, :3]
+    orth = jnp.max(jnp.abs(R.T @ R - jnp.eye(3, dtype=T.dtype)))
+    row = jnp.max(jnp.abs(T[3] - jnp.array([0.0, 0.0, 0.0, 1.0], T.dtype)))
+    return jnp.where(jnp.linalg.det(R) > 0, jnp.maximum(orth, row), jnp.inf)
+
+
+def _ray_depths(model: KinematicModel, corr: Correspondences, T_world_root, theta, cameras: Camera) -> jax.Array:
+    """Signed depth n · (a − o) of each model point a at the pose along its viewing ray from the centre o, (N,).
+
+    The Plücker line (n, m) alone cannot tell where the ray starts (m fixes the line, not a point
+    on it), so the camera centres come from the rig the correspondences were built with
+    (`corr.camera` indexes it; a single camera serves every row).
+    """
+    centres = cameras.center_world  # (C, 3) or (3,)
+    if centres.ndim == 2:
+        centres = centres[jnp.clip(corr.camera, 0, centres.shape[0] - 1)]
+    a = model_points_world(model, T_world_root, theta, corr.p_model, corr.part)
+    return jnp.sum(corr.n * (a - centres.astype(a.dtype)), axis=-1)
+
+
+def fraction_behind_cameras(
+    model: KinematicModel, corr: Correspondences, T_world_root: jax.Array, theta: jax.Array, cameras: Camera
+) -> jax.Array:
+    """Weighted fraction of correspondences whose model point at (T_world_root, Θ) lies behind its camera.
+
+    The Plücker residual (eq. 4) is blind to which side of the centre a point sits on, so a pose
+    mirrored behind the cameras fits the lines as well as the true one; the solver cannot recover.
+    """
+    live_weight = jnp.where(corr.weight > 0, corr.weight, 0.0)
+    behind = _ray_depths(model, corr, T_world_root, theta, cameras) <= 0
+    total = jnp.sum(live_weight)
+    return jnp.sum(jnp.where(behind, live_weight, 0.0)) / jnp.where(total > 0, total, 1.0)
+
+
+def input_status(
+    model: KinematicModel,
+    corr: Correspondences,
+    T_init: jax.Array,
+    theta_init: jax.Array,
+    cameras: Camera | None = None,
+) -> jax.Array:
+    """`Status.INVALID_INPUT` / `TOO_FEW` / `OK` for the inputs alone (jittable).
+
+    INVALID_INPUT: a negative or non-finite weight, a weighted row with a non-finite line or point or
+    an out-of-range part, a non-finite Θ_init, a T_init that is not a rigid transform (within
+    `rigidity_tolerance`), or, when `cameras` are given, a camera index out of range or a T_init
+    that puts more than half of the weight behind the cameras. TOO_FEW: 2·rows < 6 + J.
+    """
+    dtype = corr.n.dtype
     live = corr.weight > 0
     rows_finite = jnp.all(jnp.isfinite(corr.n) & jnp.isfinite(corr.m) & jnp.isfinite(corr.p_model), axis=-1)
+    T_finite = jnp.all(jnp.isfinite(T_init))
+    T_safe = jnp.where(T_finite, T_init, jnp.eye(4, dtype=T_init.dtype))
+    theta_finite = jnp.all(jnp.isfinite(theta_init))
     invalid = (
         jnp.any(corr.weight < 0)
         | ~jnp.all(jnp.isfinite(corr.weight))
         | jnp.any(live & ~rows_finite)
         | jnp.any(live & ((corr.part < 0) | (corr.part >= model.num_parts)))
-        | ~jnp.all(jnp.isfinite(T_init))
-        | ~jnp.all(jnp.isfinite(theta_init))
+        | ~T_finite
+        | ~theta_finite
+        | ~(_rigid_transform_defect(T_safe) <= rigidity_tolerance(dtype))
     )
+    if cameras is not None:
+        num_cameras = cameras.K.shape[0] if cameras.K.ndim == 3 else 1
+        bad_camera = jnp.any(live & ((corr.camera < 0) | (corr.camera >= num_cameras))) if num_cameras > 1 else False
+        theta_safe = jnp.where(jnp.isfinite(theta_init), theta_init, 0.0)
+        clean = _sanitize(corr)
+        invalid = invalid | bad_camera | (fraction_behind_cameras(model, clean, T_safe, theta_safe, cameras) > 0.5)
     too_few = 2 * jnp.sum(live) < model.num_dof
-    return jnp.where(invalid, PoseStatus.INVALID_INPUT, jnp.where(too_few, PoseStatus.TOO_FEW, PoseStatus.OK))
+    return first_failure(status_where(invalid, Status.INVALID_INPUT, Status.OK), status_where(too_few, Status.TOO_FEW, Status.OK))
 
 
 @eqx.filter_jit
 def solve_pose(
     model: KinematicModel,
     corr: Correspondences,
-    T_init,
-    theta_init=None,
-    config: SolverConfig = SolverConfig(),
+    T_init: jax.Array,
+    theta_init: jax.Array | None = None,
+    config: SolverConfig = DEFAULT_CONFIG,
+    cameras: Camera | None = None,
 ) -> PoseSolution:
     """Solve χ = (ξ, Θ) minimising Σ w_i |T(χ) X_i × n_i − m_i|² (eq. 4-5). Jittable and vmappable.
 
     Compiled on first use for each input structure (an `eqx.filter_jit`; inside a caller's jit or
-    vmap it is inlined). Never raises and never returns a NaN pose: on bad input, too few constraints or a failed solve
-    the initial pose comes back with the matching `PoseStatus`. Use `estimate_pose` at an API edge
-    to get errors instead.
+    vmap it is inlined). Never raises and never returns a NaN pose: on bad input, too few or
+    degenerate constraints or a failed solve the initial pose comes back with the matching `Status`.
+    Use `estimate_pose` at an API edge to get errors instead.
 
     Args:
         model: kinematic tree (P parts, J joints); `rigid_model()` for a rigid object.
         corr: padded correspondences (capacity N).
-        T_init: (4, 4) initial root pose (model → world).
+        T_init: (4, 4) initial root pose (model → world), a rigid transform.
         theta_init: (J,) initial joint angles (zeros if None).
         config: iteration settings.
+        cameras: the rig `corr` was built with (optional). When given, a T_init that puts most of
+            the weighted model points behind their cameras is INVALID_INPUT (the Plücker lines
+            alone cannot tell in front from behind).
 
     Returns:
-        PoseSolution.
+        PoseSolution. Statuses, first cause first: INVALID_INPUT, TOO_FEW (inputs), NONFINITE,
+        SOLVER_FAILED, MAX_STEPS (iterations), DEGENERATE (the 6 root degrees of freedom are not
+        determined: λ_min/λ_max of the Jacobi-scaled root block of H below `degeneracy_tolerance`).
     """
     dtype = corr.n.dtype
     T_init = jnp.asarray(T_init, dtype)
     theta_init = jnp.zeros((model.num_joints,), dtype) if theta_init is None else jnp.asarray(theta_init, dtype)
-    pre_status = input_status(model, corr, T_init, theta_init)
+    pre_status = input_status(model, corr, T_init, theta_init, cameras)
     clean = _sanitize(corr)
     weight = jnp.where(jnp.isfinite(corr.weight) & (corr.weight > 0), corr.weight, 0.0)
-    sqrt_w = _safe_sqrt(weight)
     T_init_safe = jnp.where(jnp.isfinite(T_init), T_init, jnp.eye(4, dtype=dtype))
     theta_safe = jnp.where(jnp.isfinite(theta_init), theta_init, 0.0)
     y0 = jnp.concatenate([jnp.zeros((6,), dtype), theta_safe])
     normals, offsets = line_planes(clean.n, clean.m)
-    args = (model, clean, T_init_safe, sqrt_w, normals, offsets)
+    problem = PoseProblem(
+        model=model, corr=clean, T_init=T_init_safe, sqrt_weight=_safe_sqrt(weight), normals=normals, offsets=offsets
+    )
     if config.backend == "optimistix":
         sol = optx.least_squares(
             _weighted_residual,
             optx.LevenbergMarquardt(rtol=config.rtol, atol=config.atol, linear_solver=lx.QR()),
             y0,
-            args=args,
+            args=problem,
             max_steps=config.max_steps,
             throw=False,
         )
@@ -211,29 +343,36 @@ def solve_pose(
         out_of_steps = (sol.result == optx.RESULTS.max_steps_reached) | (
             sol.result == optx.RESULTS.nonlinear_max_steps_reached
         )
-        solver_status = jnp.where(
-            sol.result == optx.RESULTS.successful,
-            PoseStatus.OK,
-            jnp.where(out_of_steps, PoseStatus.MAX_STEPS, PoseStatus.SOLVER_FAILED),
+        solver_status = first_failure(
+            status_where(out_of_steps, Status.MAX_STEPS, Status.OK),
+            status_where(sol.result != optx.RESULTS.successful, Status.SOLVER_FAILED, Status.OK),
         )
+        H, _, _ = plane_normal_equations(
+            model, se3_exp(y[:6]) @ T_init_safe, y[6:], clean.p_model, clean.part, normals, offsets, weight
+        )
+        conditioning = root_conditioning(H)
     else:
-        y, (converged, num_steps, nonfinite) = solve_implicit(
-            _weighted_residual, lambda guess: _gauss_newton_iterate(guess, args, config), y0, args
+        y, (converged, num_steps, nonfinite, conditioning) = solve_implicit(
+            _weighted_residual, lambda guess: _gauss_newton_iterate(guess, problem, config), y0, problem
         )
-        solver_status = jnp.where(
-            nonfinite > 0, PoseStatus.NONFINITE, jnp.where(converged > 0, PoseStatus.OK, PoseStatus.MAX_STEPS)
+        solver_status = first_failure(
+            status_where(nonfinite > 0, Status.NONFINITE, Status.OK),
+            status_where(converged > 0, Status.OK, Status.MAX_STEPS),
         )
     finite = jnp.all(jnp.isfinite(y))
-    solver_status = jnp.where(finite, solver_status, PoseStatus.NONFINITE)
-    status = jnp.where(pre_status != PoseStatus.OK, pre_status, solver_status).astype(jnp.int32)
-    usable = status <= PoseStatus.MAX_STEPS
-    y = jnp.where(usable & finite, y, y0)
+    degenerate = ~(conditioning >= degeneracy_tolerance(dtype))
+    status = first_failure(
+        pre_status,
+        status_where(finite, Status.OK, Status.NONFINITE),
+        status_where(degenerate, Status.DEGENERATE, Status.OK),
+        solver_status,
+    )
+    y = jnp.where(is_usable(status) & finite, y, y0)
     T_root = se3_exp(y[:6]) @ T_init_safe
-    theta = y[6:]
-    residual = _weighted_residual(y, args)
+    residual = _weighted_residual(y, problem)
     return PoseSolution(
         T_world_root=T_root,
-        theta=theta,
+        theta=y[6:],
         status=status,
         num_steps=jnp.asarray(num_steps, jnp.int32),
         cost=jnp.sum(residual**2),
@@ -241,19 +380,70 @@ def solve_pose(
     )
 
 
+def _describe_invalid(model: KinematicModel, corr: Correspondences, T_init: np.ndarray, theta: np.ndarray, cameras) -> str:
+    """Host-side reason for an INVALID_INPUT, naming the argument or field."""
+    weight = np.asarray(corr.weight)
+    live = weight > 0
+    reasons = []
+    if not np.all(np.isfinite(weight)) or np.any(weight < 0):
+        reasons.append("correspondences.weight has negative or non-finite entries")
+    for name in ("n", "m", "p_model"):
+        bad = live & ~np.all(np.isfinite(np.asarray(getattr(corr, name))), axis=-1)
+        if np.any(bad):
+            reasons.append(f"correspondences.{name} is non-finite in weighted rows {np.flatnonzero(bad)[:10].tolist()}")
+    part = np.asarray(corr.part)
+    if np.any(live & ((part < 0) | (part >= model.num_parts))):
+        reasons.append(f"correspondences.part is outside [0, {model.num_parts}) in a weighted row")
+    if not np.all(np.isfinite(theta)):
+        reasons.append("theta_init is not finite")
+    if cameras is not None:
+        num_cameras = cameras.K.shape[0] if cameras.K.ndim == 3 else 1
+        camera = np.asarray(corr.camera)
+        if num_cameras > 1 and np.any(live & ((camera < 0) | (camera >= num_cameras))):
+            reasons.append(f"correspondences.camera is outside [0, {num_cameras}) in a weighted row")
+    return "; ".join(reasons) or "invalid pose-solver input"
+
+
+def _check_rigid(T_init: np.ndarray, dtype) -> None:
+    """ValueError naming T_init unless it is a rigid transform within `rigidity_tolerance(dtype)`."""
+    if not np.all(np.isfinite(T_init)):
+        raise ValueError("T_init is not finite")
+    tol = rigidity_tolerance(dtype)
+    R = T_init[:3, :3].astype(np.float64)
+    det = float(np.linalg.det(R))
+    orth = float(np.max(np.abs(R.T @ R - np.eye(3))))
+    row = float(np.max(np.abs(T_init[3] - np.array([0.0, 0.0, 0.0, 1.0]))))
+    if det <= 0 or orth > tol:
+        raise ValueError(
+            f"T_init's rotation block is not a rotation: max|RᵀR − I| = {orth:.3g} (tolerance {tol:.2g} for "
+            f"{np.dtype(dtype).name}), det R = {det:.6g} (must be +1)"
+        )
+    if row > tol:
+        raise ValueError(f"T_init's last row must be [0, 0, 0, 1], got {T_init[3].tolist()}")
+
+
 def estimate_pose(
     model: KinematicModel,
     corr: Correspondences,
-    T_init,
-    theta_init=None,
-    config: SolverConfig = SolverConfig(),
+    T_init: jax.Array | np.ndarray,
+    theta_init: jax.Array | np.ndarray | None = None,
+    config: SolverConfig = DEFAULT_CONFIG,
+    cameras: Camera | None = None,
+    throw: bool = True,
 ) -> PoseSolution:
-    """API-edge pose solve: validates the inputs, runs the jitted `solve_pose`, raises on failure.
+    """API-edge pose solve: validates the inputs, runs the jitted `solve_pose`, checks the status.
+
+    Args:
+        model, corr, T_init, theta_init, config, cameras: as for `solve_pose`. Pass the rig `corr`
+            was built with as `cameras` to have a T_init behind the cameras rejected.
+        throw: raise `StatusError` for an unusable solver status (DEGENERATE, NONFINITE,
+            SOLVER_FAILED); with False the solution comes back with its status.
 
     Raises:
-        ValueError: malformed inputs (shape, NaN, negative weight, part out of range) or too few
-            effective correspondences, with the problem named.
-        RuntimeError: the solver failed (status SOLVER_FAILED or NONFINITE).
+        ValueError: malformed inputs (shape, NaN, negative weight, part or camera out of range),
+            a T_init that is not a rigid transform or puts most points behind the cameras, or too
+            few effective correspondences, with the argument or field named.
+        StatusError: (a RuntimeError) the solve failed and `throw` is True.
     """
     num_rows = corr.weight.shape[0]
     for name in ("n", "m", "p_model"):
@@ -265,19 +455,25 @@ def estimate_pose(
         raise ValueError(f"T_init must have shape (4, 4), got {T_init.shape}")
     if theta_init is not None and np.shape(theta_init) != (model.num_joints,):
         raise ValueError(f"theta_init must have shape ({model.num_joints},), got {np.shape(theta_init)}")
-    theta = jnp.zeros(model.num_joints) if theta_init is None else jnp.asarray(theta_init)
-    status = PoseStatus(int(input_status(model, corr, jnp.asarray(T_init), theta)))
-    if status == PoseStatus.INVALID_INPUT:
-        raise ValueError(
-            "invalid pose-solver input: a weighted correspondence has a non-finite line or point, a weight "
-            "is negative or non-finite, a part index is out of range, or the initial pose is not finite"
-        )
-    if status == PoseStatus.TOO_FEW:
+    dtype = corr.n.dtype
+    _check_rigid(T_init, dtype)
+    theta = np.zeros(model.num_joints) if theta_init is None else np.asarray(theta_init)
+    status = Status(int(input_status(model, corr, jnp.asarray(T_init, dtype), jnp.asarray(theta, dtype), cameras)))
+    if status == Status.INVALID_INPUT:
+        reason = _describe_invalid(model, corr, T_init, theta, cameras)
+        if reason == "invalid pose-solver input" and cameras is not None:
+            clean = _sanitize(corr)
+            behind = float(fraction_behind_cameras(model, clean, jnp.asarray(T_init, dtype), jnp.asarray(theta, dtype), cameras))
+            reason = (
+                f"T_init puts {100 * behind:.0f}% of the correspondence weight behind the cameras (the model "
+                "points must lie in front of the camera along their viewing rays)"
+            )
+        raise ValueError(f"invalid pose-solver input: {reason}")
+    if status == Status.TOO_FEW:
         raise ValueError(
             f"too few effective correspondences: {int(corr.num_effective())} with positive weight give "
             f"{2 * int(corr.num_effective())} constraints for {model.num_dof} degrees of freedom"
         )
-    sol = solve_pose(model, corr, T_init, theta_init, config)
-    if int(sol.status) >= PoseStatus.SOLVER_FAILED:
-        raise RuntimeError(f"pose solve failed with status {PoseStatus(int(sol.status)).name}")
+    sol = solve_pose(model, corr, T_init, theta_init, config, cameras)
+    check_status(sol.status, throw=throw, context="estimate_pose")
     return sol
