@@ -18,7 +18,7 @@ def _camera(eye):
     return jt.make_camera(K, 640, 480, R, t), R, t
 
 
-def ray_cast(mesh, R, t, width=640, height=480):
+def ray_cast(mesh, R, t, width=640, height=480, K=K):
     """Reference: embree ray casting through every pixel centre. Returns face id and depth (H, W)."""
     trimesh = pytest.importorskip("trimesh")
     from trimesh.ray.ray_pyembree import RayMeshIntersector
@@ -67,8 +67,12 @@ def test_matches_ray_caster(name, mesh_fn, eye, cull):
     T = jnp.eye(4)
     plan = plan_raster(face_extents(mesh, cam, T, cull_backfaces=cull), cull_backfaces=cull)
     out = jax.jit(lambda T: render(mesh, cam, T, plan=plan))(T)
-    assert not bool(out.overflow)
-    face_ref, depth_ref = ray_cast(mesh, R, t)
+    assert not bool(out.overflow) and int(out.status) == jt.Status.OK
+    _assert_matches_ray_caster(out, mesh, R, t)
+
+
+def _assert_matches_ray_caster(out, mesh, R, t, width=640, height=480, K=K):
+    face_ref, depth_ref = ray_cast(mesh, R, t, width, height, K)
     sil, sil_ref = np.asarray(out.silhouette), face_ref >= 0
     iou = (sil & sil_ref).sum() / (sil | sil_ref).sum()
     both = sil & sil_ref
@@ -93,7 +97,7 @@ def test_visibility_and_parts_of_an_articulated_mesh():
     faces = np.concatenate([np.asarray(a.faces), np.asarray(a.faces) + 8])
     mesh = make_mesh(verts, faces, vertex_part=np.r_[np.zeros(8), np.ones(8)])
     model = jt.chain_model([-1, 0], [(0, 1, 0)], [(0, 0, 0)])
-    cam, R, t = _camera([0, 0, -400])
+    cam, _, _ = _camera([0, 0, -400])
     out = jt.render.Renderer(mesh, cam, model)(jnp.eye(4), jnp.array([0.0]))
     assert set(np.unique(np.asarray(out.part_id))) == {-1, 0, 1}
     # Front-face vertices (z = −20) are visible, back-face vertices (z = +20) are hidden.
@@ -120,7 +124,8 @@ def test_overflow_is_reported_and_renderer_replans():
     mesh = torus_mesh()
     cam, _, _ = _camera([0, -250, -350])
     tiny = jt.render.RasterPlan(patch_sizes=(8,), capacities=(16,))
-    assert bool(render(mesh, cam, jnp.eye(4), plan=tiny).overflow)
+    out = render(mesh, cam, jnp.eye(4), plan=tiny)
+    assert bool(out.overflow) and int(out.status) == jt.Status.RENDER_OVERFLOW
     with pytest.raises(ValueError, match="RasterPlan"):
         render(mesh, cam, jnp.eye(4))
     # Moving the torus 3x closer makes every face bigger: the renderer re-plans once and stays exact.
@@ -130,6 +135,53 @@ def test_overflow_is_reported_and_renderer_replans():
     assert not bool(far.overflow) and not bool(near.overflow)
     assert renderer.compilations == 2
     assert int(near.silhouette.sum()) > 2 * int(far.silhouette.sum())
+    with pytest.raises(ValueError, match="T_world_root"):
+        renderer(jnp.full((4, 4), jnp.nan))
+    with pytest.raises(ValueError, match="theta"):
+        renderer(jnp.eye(4), jnp.zeros(2))
+    # Inside jit a non-finite pose is a status, not an exception (the renderer's compiled program).
+    from jaxtrack.render._raster import _render_jit
+
+    nan_pose = jnp.full((4, 4), jnp.nan, jnp.float32)
+    bad = _render_jit(mesh, cam, nan_pose, jnp.zeros((0,), jnp.float32), None, renderer.plan)
+    assert int(bad.status) == jt.Status.INVALID_INPUT
+
+
+# 1280x720 with a wide lens: an object 250 mm away fills most of the frame and its faces span
+# far more than the largest patch class (724 px).
+K_HD = np.array([[700.0, 0, 639.5], [0, 700.0, 359.5], [0, 0, 1]])
+
+
+def test_faces_larger_than_every_patch_class_are_tiled():
+    mesh = box_mesh((400, 300, 200))
+    R, t = look_at([60, -40, -350])
+    cam = jt.make_camera(K_HD, 1280, 720, R, t)
+    sides = face_extents(mesh, cam, jnp.eye(4), cull_backfaces=True, per_axis=True)
+    assert sides.max() > jt.render.PATCH_SIZES[-1]  # these faces were dropped before tiling
+    renderer = jt.render.Renderer(mesh, cam, cull_backfaces=True)
+    out = renderer(jnp.eye(4))
+    assert renderer.plan.tile_capacity >= int(jt.render.tiles_needed(sides, jt.render.PATCH_SIZES[-1])) > 0
+    assert not bool(out.overflow) and int(out.status) == jt.Status.OK
+    assert np.asarray(out.silhouette).mean() > 0.6
+    _assert_matches_ray_caster(out, mesh, R, t, 1280, 720, K_HD)
+    # A plan without enough tiles reports the overflow instead of dropping faces silently.
+    short = jt.render.RasterPlan(renderer.plan.patch_sizes, renderer.plan.capacities, cull_backfaces=True, tile_capacity=1)
+    out_short = jax.jit(lambda T: render(mesh, cam, T, plan=short))(jnp.eye(4))
+    assert bool(out_short.overflow) and int(out_short.status) == jt.Status.RENDER_OVERFLOW
+
+
+def test_renderers_of_one_mesh_share_a_compilation():
+    from jaxtrack.render import _raster
+
+    mesh = box_mesh((90, 50, 30))
+    cam, _, _ = _camera([40, -120, -380])
+    before = eqx.debug.get_num_traces(_raster._render_body)
+    first, second = jt.render.Renderer(mesh, cam, cull_backfaces=True), jt.render.Renderer(mesh, cam, cull_backfaces=True)
+    a = first(jnp.eye(4))
+    b = second(jt.se3_exp(jnp.array([2.0, 0, 0, 0, 0.01, 0])))  # same plan, another pose
+    assert first.plan == second.plan
+    assert eqx.debug.get_num_traces(_raster._render_body) == before + 1
+    assert int(a.silhouette.sum()) > 0 and not np.array_equal(np.asarray(a.depth), np.asarray(b.depth))
 
 
 def test_make_mesh_errors():

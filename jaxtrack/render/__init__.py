@@ -7,9 +7,12 @@ from ._mesh import box_mesh as box_mesh
 from ._mesh import make_mesh as make_mesh
 from ._mesh import torus_mesh as torus_mesh
 from ._raster import PATCH_SIZES as PATCH_SIZES
+from ._raster import TILE_SIZE as TILE_SIZE
 from ._raster import RasterPlan as RasterPlan
 from ._raster import Renderer as Renderer
 from ._raster import RenderOutput as RenderOutput
 from ._raster import face_extents as face_extents
+from ._raster import merge_plans as merge_plans
 from ._raster import plan_raster as plan_raster
 from ._raster import render as render
+from ._raster import tiles_needed as tiles_needed

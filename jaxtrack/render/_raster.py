@@ -1,11 +1,14 @@
 """A jittable triangle rasteriser with static shapes: depth, face id, surface points, visibility.
 
 Each triangle is tested over a fixed square pixel patch anchored at its (image-clipped) bounding box.
-Triangles are sorted into a few patch-size classes (4, 8, ..., 512 px); each class has a fixed
-capacity chosen on the host (`plan_raster`). Depth is written with a scatter-min over all candidate
-(triangle, pixel) pairs, then the winning face id with a scatter-max among the pixels whose depth
-equals the minimum. A class overflowing its capacity is reported (`RenderOutput.overflow`), never
-silently cropped; `Renderer` re-plans on the host when that happens.
+Triangles are sorted into a few patch-size classes (4, 6, 8, ..., 724 px); each class has a fixed
+capacity chosen on the host (`plan_raster`). A triangle larger than the plan's largest class (one
+close to the camera) is covered by square tiles of `RasterPlan.tile_size` px laid over its bounding
+box, from a pool of `tile_capacity` tiles shared by all such triangles, so no on-screen triangle is
+too big to draw. Depth is written with a scatter-min over all candidate (triangle, pixel) pairs, then
+the winning face id with a scatter-max among the pixels whose depth equals the minimum. A class or
+the tile pool overflowing its capacity is reported (`RenderOutput.overflow`, status
+RENDER_OVERFLOW), never silently cropped; `Renderer` re-plans on the host when that happens.
 
 Pixel centres are at integer coordinates (OpenCV). Depth is interpolated perspective-correctly
 (1/z is affine in screen space). Triangles with a vertex in front of the near plane are dropped
@@ -19,20 +22,44 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..geometry import Camera, KinematicModel, part_transforms, pixels_to_normalized, rigid_model, se3_inverse
+from .._status import Status, StatusError, first_failure, status_where
+from ..geometry import (
+    Camera,
+    KinematicModel,
+    part_transforms,
+    pixels_to_normalized,
+    rigid_model,
+    se3_inverse,
+    transform_point_columns,
+)
 from ._mesh import Mesh
 
 # Steps of √2: a face's square patch is then at most 2x the area of its bounding square.
 PATCH_SIZES = (4, 6, 8, 11, 16, 23, 32, 45, 64, 91, 128, 181, 256, 362, 512, 724)
 
 
+# Side of the tiles that cover triangles beyond the largest patch class: 256² candidates a tile.
+TILE_SIZE = 256
+
+
 class RasterPlan(eqx.Module):
-    """Static capacities per patch-size class (host-chosen; changing them recompiles)."""
+    """Static capacities per patch-size class (host-chosen; changing them recompiles).
+
+    Attributes:
+        patch_sizes: increasing square patch sides of the classes in use.
+        capacities: triangles per class.
+        near: near-plane depth; triangles with a vertex in front of it are dropped.
+        cull_backfaces: skip back faces (closed meshes only).
+        tile_size: side of the tiles covering triangles larger than the largest class.
+        tile_capacity: tiles in the pool for such triangles (0: none expected; any is an overflow).
+    """
 
     patch_sizes: tuple = eqx.field(static=True)
     capacities: tuple = eqx.field(static=True)
     near: float = eqx.field(static=True, default=1.0)
     cull_backfaces: bool = eqx.field(static=True, default=False)
+    tile_size: int = eqx.field(static=True, default=TILE_SIZE)
+    tile_capacity: int = eqx.field(static=True, default=0)
 
 
 class RenderOutput(eqx.Module):
@@ -44,8 +71,11 @@ class RenderOutput(eqx.Module):
         p_model: (H, W, 3) model-frame (zero-configuration) surface point behind each pixel.
         part_id: (H, W) int32 part of the visible face, −1 on background.
         vertex_visible: (V,) bool vertex in the image and not occluded.
-        overflow: bool, a patch-size class exceeded its capacity (some triangles were not drawn).
+        overflow: bool, a patch-size class or the tile pool exceeded its capacity (some triangles
+            were not drawn).
         near_clipped: int32 triangles dropped for crossing the near plane.
+        status: int32 `jaxtrack.Status`: INVALID_INPUT for a non-finite pose or joint angle,
+            RENDER_OVERFLOW (usable, incomplete) on overflow, else OK.
     """
 
     depth: jax.Array
@@ -55,6 +85,7 @@ class RenderOutput(eqx.Module):
     vertex_visible: jax.Array
     overflow: jax.Array
     near_clipped: jax.Array
+    status: jax.Array
 
     @property
     def silhouette(self):
@@ -67,9 +98,7 @@ def _project_vertices(mesh: Mesh, camera: Camera, model: KinematicModel, T_world
     T_cam_parts = camera.T_cam_world @ part_transforms(model, T_world_root, theta)
     T = T_cam_parts[0] if model.num_parts == 1 else T_cam_parts[mesh.vertex_part]
     v = mesh.vertices
-    p_cam = jnp.stack(
-        [T[..., i, 0] * v[:, 0] + T[..., i, 1] * v[:, 1] + T[..., i, 2] * v[:, 2] + T[..., i, 3] for i in range(3)], -1
-    )
+    p_cam = jnp.stack(transform_point_columns(T, v[:, 0], v[:, 1], v[:, 2]), -1)
     z = p_cam[:, 2]
     safe_z = jnp.where(jnp.abs(z) > 1e-6, z, 1e-6)
     K = camera.K
@@ -79,30 +108,37 @@ def _project_vertices(mesh: Mesh, camera: Camera, model: KinematicModel, T_world
 
 
 def _face_boxes(px_f, valid, width, height):
-    """Integer pixel boxes [x0, x1] x [y0, y1] of pixel centres inside each face's bbox, clipped."""
+    """Integer pixel boxes [x0, x1] x [y0, y1] of pixel centres inside each face's bbox, clipped.
+
+    Returns the lower corner (F, 2) int32, the box sides (F, 2) in pixels and the on-screen mask.
+    """
     lo = jnp.ceil(jnp.min(px_f, axis=1))
     hi = jnp.floor(jnp.max(px_f, axis=1))
     lo = jnp.maximum(lo, 0)
     hi = jnp.minimum(hi, jnp.array([width - 1, height - 1], px_f.dtype))
-    extent = jnp.max(hi - lo + 1, axis=1)
+    sides = hi - lo + 1
     on_screen = valid & jnp.all(hi >= lo, axis=1)
-    return lo.astype(jnp.int32), extent, on_screen
+    return lo.astype(jnp.int32), sides, on_screen
 
 
 def _edge(ax, ay, bx, by, px, py):
     return (bx - ax) * (py - ay) - (by - ay) * (px - ax)
 
 
-def _rasterize_class(px_f, inv_z_f, faces_idx, lo, size: int, width: int, height: int):
-    """Candidates of one patch class: flat pixel index, depth and face (masked by coverage)."""
+def _rasterize_class(px_f, inv_z_f, faces_idx, corner, size: int, width: int, height: int):
+    """Candidates of one patch class: flat pixel index, depth and face (masked by coverage).
+
+    `faces_idx` (C,) gives the face of each slot (−1: empty), `corner` (C, 2) the integer pixel of
+    its patch's top-left corner.
+    """
     num = faces_idx.shape[0]
     face_ok = faces_idx >= 0
     f = jnp.where(face_ok, faces_idx, 0)
     tri = px_f[f]  # (C, 3, 2)
     iz = inv_z_f[f]  # (C, 3)
     offs = jnp.arange(size, dtype=jnp.int32)
-    gx = lo[f, 0][:, None, None] + offs[None, None, :]
-    gy = lo[f, 1][:, None, None] + offs[None, :, None]
+    gx = corner[:, 0][:, None, None] + offs[None, None, :]
+    gy = corner[:, 1][:, None, None] + offs[None, :, None]
     gx = jnp.broadcast_to(gx, (num, size, size)).reshape(num, -1)
     gy = jnp.broadcast_to(gy, (num, size, size)).reshape(num, -1)
     pxf, pyf = gx.astype(px_f.dtype), gy.astype(px_f.dtype)
@@ -156,13 +192,14 @@ def render(
     if plan.cull_backfaces:  # only for closed meshes: a back face is then always hidden
         valid = valid & _front_facing(px_f)
     inv_z_f = 1.0 / jnp.where(in_front[:, None], z_f, 1.0)
-    lo, extent, on_screen = _face_boxes(px_f, valid, width, height)
+    lo, sides, on_screen = _face_boxes(px_f, valid, width, height)
+    extent = jnp.max(sides, axis=1)
 
     sizes = jnp.asarray(plan.patch_sizes)
     cls = jnp.searchsorted(sizes, extent.astype(sizes.dtype), side="left")  # smallest size ≥ extent
     cls = jnp.where(on_screen, cls, len(plan.patch_sizes))  # off-screen faces: no class
-    overflow = jnp.any(on_screen & (cls >= len(plan.patch_sizes)))
     flats, depths, fids = [], [], []
+    overflow = jnp.asarray(False)
     for k, (size, cap) in enumerate(zip(plan.patch_sizes, plan.capacities)):
         member = cls == k
         slot = jnp.cumsum(member) - 1
@@ -170,10 +207,21 @@ def render(
         idx = jnp.full((cap,), -1, jnp.int32).at[jnp.where(member, slot, cap)].set(
             jnp.arange(mesh.num_faces, dtype=jnp.int32), mode="drop"
         )
-        f, d, i = _rasterize_class(px_f, inv_z_f, idx, lo, size, width, height)
+        f, d, i = _rasterize_class(px_f, inv_z_f, idx, lo[jnp.maximum(idx, 0)], size, width, height)
         flats.append(f)
         depths.append(d)
         fids.append(i)
+    # Faces beyond the largest class: tiles over their bounding boxes (none planned: an overflow).
+    oversized = on_screen & (cls >= len(plan.patch_sizes))
+    if plan.tile_capacity > 0:
+        idx, corner, tile_overflow = _tile_slots(oversized, lo, sides, plan.tile_size, plan.tile_capacity)
+        overflow = overflow | tile_overflow
+        f, d, i = _rasterize_class(px_f, inv_z_f, idx, corner, plan.tile_size, width, height)
+        flats.append(f)
+        depths.append(d)
+        fids.append(i)
+    else:
+        overflow = overflow | jnp.any(oversized)
     flat = jnp.concatenate(flats)
     depth_c = jnp.concatenate(depths)
     fid_c = jnp.concatenate(fids)
@@ -195,10 +243,7 @@ def render(
     T_part_cam = se3_inverse(T_cam_parts)  # (P, 4, 4)
     p_model = jnp.zeros_like(pix_cam)
     for p in range(model.num_parts):  # few parts: a select per part beats a per-pixel 4x4 gather
-        T = T_part_cam[p]
-        q = jnp.stack(
-            [T[i, 0] * pix_cam[..., 0] + T[i, 1] * pix_cam[..., 1] + T[i, 2] * pix_cam[..., 2] + T[i, 3] for i in range(3)], -1
-        )
+        q = jnp.stack(transform_point_columns(T_part_cam[p], pix_cam[..., 0], pix_cam[..., 1], pix_cam[..., 2]), -1)
         p_model = jnp.where((part_id == p)[..., None], q, p_model)
 
     # Vertex visibility: in the image and not behind the depth buffer at its pixel.
@@ -207,7 +252,37 @@ def render(
     in_img = (u >= 0) & (u < width) & (v >= 0) & (v < height) & (p_cam[:, 2] > plan.near)
     d_at = depth[jnp.clip(v, 0, height - 1), jnp.clip(u, 0, width - 1)]
     vertex_visible = in_img & (p_cam[:, 2] <= d_at * (1 + vertex_depth_tolerance) + 1e-3)
-    return RenderOutput(depth, face_id, p_model, part_id, vertex_visible, overflow, near_clipped.astype(jnp.int32))
+    pose_ok = jnp.all(jnp.isfinite(T_world_root)) & jnp.all(jnp.isfinite(theta))
+    status = first_failure(
+        status_where(pose_ok, Status.OK, Status.INVALID_INPUT), status_where(overflow, Status.RENDER_OVERFLOW, Status.OK)
+    )
+    return RenderOutput(
+        depth, face_id, p_model, part_id, vertex_visible, overflow, near_clipped.astype(jnp.int32), status
+    )
+
+
+def _tile_slots(oversized, lo, sides, tile: int, capacity: int):
+    """Spread the faces flagged `oversized` over a pool of `capacity` square tiles of side `tile`.
+
+    Face f needs ceil(w_f / tile) x ceil(h_f / tile) tiles over its clipped bounding box (`lo`,
+    `sides`); the faces' tiles are laid out one after the other in the pool (a running sum), and
+    each pool slot finds its face by a binary search over that sum.
+
+    Returns:
+        face index per slot (capacity,) int32 (−1: unused), the slot's top-left pixel (capacity, 2)
+        int32 and whether the faces needed more tiles than the pool holds.
+    """
+    nx = jnp.ceil(sides[:, 0] / tile).astype(jnp.int32)
+    ny = jnp.ceil(sides[:, 1] / tile).astype(jnp.int32)
+    count = jnp.where(oversized, nx * ny, 0)
+    end = jnp.cumsum(count)  # tiles of faces 0..f
+    slot = jnp.arange(capacity, dtype=end.dtype)
+    face = jnp.searchsorted(end, slot, side="right").astype(jnp.int32)  # first face whose end > slot
+    used = slot < end[-1]
+    f = jnp.where(used, face, 0)
+    k = slot - (end[f] - count[f])  # the slot's tile within its face, row-major
+    corner = lo[f] + tile * jnp.stack([k % jnp.maximum(nx[f], 1), k // jnp.maximum(nx[f], 1)], -1)
+    return jnp.where(used, face, -1), corner.astype(jnp.int32), end[-1] > capacity
 
 
 def _front_facing(px_f):
@@ -216,25 +291,66 @@ def _front_facing(px_f):
     return _edge(a[:, 0], a[:, 1], b[:, 0], b[:, 1], c[:, 0], c[:, 1]) < 0
 
 
-def face_extents(mesh: Mesh, camera: Camera, T_world_root, theta=None, model=None, cull_backfaces=False):
-    """Host helper: on-screen pixel extent of every face (0 if off-screen or culled), for planning."""
+def face_extents(
+    mesh: Mesh,
+    camera: Camera,
+    T_world_root,
+    theta=None,
+    model: KinematicModel | None = None,
+    cull_backfaces: bool = False,
+    per_axis: bool = False,
+) -> np.ndarray:
+    """Host helper: on-screen pixel extent of every face (0 if off-screen or culled), for planning.
+
+    Returns (F,) the longer side of each face's clipped bounding box, or (F, 2) its (width, height)
+    with `per_axis`.
+    """
     model = rigid_model(mesh.vertices.dtype) if model is None else model
     theta = jnp.zeros((model.num_joints,), mesh.vertices.dtype) if theta is None else theta
     p_cam, px, _ = _project_vertices(mesh, camera, model, jnp.asarray(T_world_root, mesh.vertices.dtype), theta)
     valid = jnp.all(p_cam[mesh.faces, 2] > 0, axis=1)
     if cull_backfaces:
         valid = valid & _front_facing(px[mesh.faces])
-    _, extent, on_screen = _face_boxes(px[mesh.faces], valid, camera.width, camera.height)
-    return np.asarray(jnp.where(on_screen, extent, 0))
+    _, sides, on_screen = _face_boxes(px[mesh.faces], valid, camera.width, camera.height)
+    sides = np.asarray(jnp.where(on_screen[:, None], sides, 0))
+    return sides if per_axis else sides.max(axis=1)
+
+
+def tiles_needed(sides, threshold: int, tile_size: int = TILE_SIZE) -> np.ndarray:
+    """Host helper: tiles of side `tile_size` that the faces larger than `threshold` px need.
+
+    Args:
+        sides: (F, 2) or (N, F, 2) per-face (width, height) from `face_extents(..., per_axis=True)`.
+
+    Returns:
+        () or (N,) tile counts (the tile pool `render` fills for those faces).
+    """
+    sides = np.asarray(sides)
+    big = sides.max(axis=-1) > threshold
+    per_face = np.ceil(sides[..., 0] / tile_size) * np.ceil(sides[..., 1] / tile_size)
+    return np.sum(np.where(big, per_face, 0), axis=-1).astype(np.int64)
 
 
 def plan_raster(
-    extents, margin: float = 1.3, minimum: int = 8, patch_sizes=PATCH_SIZES, max_size=None, cull_backfaces=False
+    extents,
+    margin: float = 1.3,
+    minimum: int = 8,
+    patch_sizes: tuple = PATCH_SIZES,
+    max_size: int | None = None,
+    cull_backfaces: bool = False,
+    tiles=None,
+    tile_size: int = TILE_SIZE,
 ) -> RasterPlan:
     """Capacities per class from observed face extents (one or more frames), with a margin.
 
     Capacities are rounded up to multiples of 8 (at least `minimum` for a class in use): a big-patch
-    class costs size² candidates per slot, so slack there is expensive.
+    class costs size² candidates per slot, so slack there is expensive. Faces larger than the largest
+    class go to the tile pool; its capacity is `tiles` (per frame, from `tiles_needed`) times the
+    margin, or, without `tiles`, the upper bound ceil(extent / tile_size)² per face.
+
+    Args:
+        extents: (F,) or (N, F) face extents in pixels (`face_extents`), N frames.
+        tiles: optional () or (N,) tiles the oversized faces need per frame (`tiles_needed`).
     """
     extents = np.atleast_2d(np.asarray(extents))
     sizes = [s for s in patch_sizes if max_size is None or s < max_size] + ([max_size] if max_size else [])
@@ -248,9 +364,45 @@ def plan_raster(
     kept = [(s, c) for s, c in zip(sizes, caps) if c > 0]
     if not kept:
         kept = [(sizes[0], minimum)]
+    if tiles is None:  # square tiles over a square box: an upper bound of what the faces need
+        tiles = np.sum(np.where(extents > sizes[-1], np.ceil(extents / tile_size) ** 2, 0), axis=1)
+    tile_capacity = int(np.ceil(np.max(tiles) * margin))  # tiles cost tile_size² each: no rounding up
     return RasterPlan(
-        patch_sizes=tuple(s for s, _ in kept), capacities=tuple(c for _, c in kept), cull_backfaces=cull_backfaces
+        patch_sizes=tuple(s for s, _ in kept),
+        capacities=tuple(c for _, c in kept),
+        cull_backfaces=cull_backfaces,
+        tile_size=tile_size,
+        tile_capacity=tile_capacity,
     )
+
+
+def merge_plans(old: RasterPlan, new: RasterPlan) -> RasterPlan:
+    """The larger capacity of the two plans class by class (and for the tile pool); never shrinks."""
+    if (old.tile_size, old.near, old.cull_backfaces) != (new.tile_size, new.near, new.cull_backfaces):
+        raise ValueError("merge_plans: the plans differ in tile_size, near or cull_backfaces")
+    caps = dict(zip(old.patch_sizes, old.capacities))
+    for size, cap in zip(new.patch_sizes, new.capacities):
+        caps[size] = max(cap, caps.get(size, 0))
+    sizes = tuple(sorted(caps))
+    return RasterPlan(
+        sizes,
+        tuple(caps[s] for s in sizes),
+        near=new.near,
+        cull_backfaces=new.cull_backfaces,
+        tile_size=new.tile_size,
+        tile_capacity=max(old.tile_capacity, new.tile_capacity),
+    )
+
+
+@eqx.debug.assert_max_traces(max_traces=None)  # counts traces (`eqx.debug.get_num_traces`), never fails
+def _render_body(mesh, camera, T_world_root, theta, model, plan):
+    return render(mesh, camera, T_world_root, theta, model, plan)
+
+
+# One jitted program for every Renderer: the plan (all static fields) is part of the cache key and
+# the mesh and camera are arguments, so renderers of same-sized meshes with the same plan share a
+# compilation instead of each closing over its own.
+_render_jit = eqx.filter_jit(_render_body)
 
 
 class Renderer:
@@ -258,8 +410,9 @@ class Renderer:
 
     `cull_backfaces=True` is for closed (watertight) meshes: back faces are skipped, halving the work.
     The plan comes from the first pose; when a render reports overflow the plan is redone from the
-    face extents of that pose (with margin, merged with the old plan) and the frame re-rendered. Each
-    new plan is one compilation; `compilations` counts them.
+    face extents of that pose (with margin, merged with the old plan) and the frame re-rendered.
+    `compilations` counts the plans this renderer made; each is one compilation unless any renderer
+    of a same-sized mesh and camera already compiled that plan (programs are shared, keyed by plan).
     """
 
     def __init__(self, mesh: Mesh, camera: Camera, model: KinematicModel | None = None, cull_backfaces: bool = False):
@@ -267,32 +420,41 @@ class Renderer:
         self.cull_backfaces = cull_backfaces
         self.plan: RasterPlan | None = None
         self.compilations = 0
-        self._fn = None
 
     def _replan(self, T_world_root, theta):
-        ext = face_extents(self.mesh, self.camera, T_world_root, theta, self.model, self.cull_backfaces)
+        sides = face_extents(self.mesh, self.camera, T_world_root, theta, self.model, self.cull_backfaces, per_axis=True)
+        tiles = tiles_needed(sides, PATCH_SIZES[-1])
         # Each re-plan widens the margin (1.3, 1.95, 2.9, ...): a drifting object settles after a
         # few compilations instead of re-planning every few frames.
-        new = plan_raster(ext, margin=1.3 * 1.5**self.compilations, cull_backfaces=self.cull_backfaces)
-        if self.plan is not None:  # never shrink: merge capacities class by class
-            caps = dict(zip(self.plan.patch_sizes, self.plan.capacities))
-            for size, cap in zip(new.patch_sizes, new.capacities):
-                caps[size] = max(cap, caps.get(size, 0))
-            sizes = tuple(sorted(caps))
-            new = RasterPlan(sizes, tuple(caps[s] for s in sizes), cull_backfaces=self.cull_backfaces)
-        self.plan = new
-        mesh, camera, model, plan = self.mesh, self.camera, self.model, new
-        self._fn = jax.jit(lambda T, th: render(mesh, camera, T, th, model, plan))
+        margin = 1.3 * 1.5**self.compilations
+        new = plan_raster(sides.max(axis=1), margin=margin, cull_backfaces=self.cull_backfaces, tiles=tiles)
+        self.plan = new if self.plan is None else merge_plans(self.plan, new)
         self.compilations += 1
 
-    def __call__(self, T_world_root, theta=None) -> RenderOutput:
+    def __call__(self, T_world_root, theta=None, throw: bool = True) -> RenderOutput:
+        """Render at root pose (4, 4) and joint angles (J,) (default zeros).
+
+        Raises:
+            ValueError: a pose or joint-angle array of the wrong shape or with non-finite values.
+            StatusError: with `throw`, if the frame still overflows after re-planning (not expected:
+                the new plan is made from this very pose); without, the output says RENDER_OVERFLOW.
+        """
+        num_joints = 0 if self.model is None else self.model.num_joints
+        T_np = np.asarray(T_world_root)
+        if T_np.shape != (4, 4) or not np.all(np.isfinite(T_np)):
+            raise ValueError(f"Renderer: T_world_root must be a finite (4, 4) array, got shape {T_np.shape}")
         T_world_root = jnp.asarray(T_world_root, self.mesh.vertices.dtype)
         if theta is None:
-            theta = jnp.zeros((0 if self.model is None else self.model.num_joints,), T_world_root.dtype)
-        if self._fn is None:
+            theta = jnp.zeros((num_joints,), T_world_root.dtype)
+        th_np = np.asarray(theta)
+        if th_np.shape != (num_joints,) or not np.all(np.isfinite(th_np)):
+            raise ValueError(f"Renderer: theta must be a finite ({num_joints},) array, got shape {th_np.shape}")
+        if self.plan is None:
             self._replan(T_world_root, theta)
-        out = self._fn(T_world_root, theta)
+        out = _render_jit(self.mesh, self.camera, T_world_root, theta, self.model, self.plan)
         if bool(out.overflow):
             self._replan(T_world_root, theta)
-            out = self._fn(T_world_root, theta)
+            out = _render_jit(self.mesh, self.camera, T_world_root, theta, self.model, self.plan)
+        if throw and bool(out.overflow):
+            raise StatusError(Status.RENDER_OVERFLOW, "Renderer: still overflowing after re-planning")
         return out
