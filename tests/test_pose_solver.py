@@ -8,7 +8,7 @@ import pytest
 from scipy.stats import chi2
 
 import jaxtrack as jt
-from jaxtrack.geometry import se3_inverse, se3_log
+from jaxtrack.geometry import project_points, se3_inverse, se3_log, select_camera
 from jaxtrack.solve import PoseStatus, SolverConfig, make_correspondences, pad_rows, solve_pose
 from jaxtrack.solve._normal_equations import line_planes, plane_normal_equations
 from jaxtrack.synth import demo_chain, perturb_pose, random_pose_scene
@@ -118,7 +118,9 @@ def test_vmap_over_weight_vectors_equals_loop():
     corr = _corr(scene)
     weights = jnp.asarray(np.random.default_rng(3).uniform(0.0, 2.0, size=(64, 120)))
     T0, th0 = jnp.asarray(scene.T_world_root), jnp.asarray(scene.theta)
-    solve = lambda w: solve_pose(model, corr.with_weight(w), T0, th0)  # noqa: E731
+    def solve(w):
+        return solve_pose(model, corr.with_weight(w), T0, th0)
+
     batched = jax.jit(jax.vmap(solve))(weights)
     single = jax.jit(solve)
     for k in range(64):
@@ -136,7 +138,7 @@ def test_vmap_over_initial_poses_and_correspondence_sets():
     T0 = jnp.asarray(np.stack([perturb_pose(rng, s.T_world_root, 0.3, 30.0) for s in scenes]))
     out = jax.vmap(lambda c, T: solve_pose(model, c, T))(corr, T0)
     for k, s in enumerate(scenes):
-        sol = solve_pose(model, jax.tree_util.tree_map(lambda x: x[k], corr), T0[k])
+        sol = solve_pose(model, jax.tree_util.tree_map(lambda x, k=k: x[k], corr), T0[k])
         np.testing.assert_allclose(out.T_world_root[k], sol.T_world_root, atol=1e-8)
 
 
@@ -272,3 +274,120 @@ def test_float32_solve_is_accurate():
 def test_pad_rows():
     assert pad_rows(np.ones((2, 3)), 5).shape == (5, 3)
     assert pad_rows(np.ones(2), 4).tolist() == [1, 1, 0, 0]
+
+
+def _rigid_scene(num_points=60, dtype=np.float64, p_model=None, seed=0, capacity=64):
+    """One camera (at z = −1000 looking along +z), a rigid object at its true pose; optional model points.
+
+    One capacity for all these tests, so that they share the compiled solver (per dtype).
+    """
+    scene = random_pose_scene(seed, num_points=num_points, dtype=dtype)
+    if p_model is not None:
+        T = scene.T_world_root
+        p_world = p_model @ T[:3, :3].T + T[:3, 3]
+        pixel, _ = project_points(select_camera(scene.cameras, 0), jnp.asarray(p_world, dtype))
+        noisy = np.asarray(pixel, np.float64) + np.random.default_rng(seed).normal(0.0, 0.5, (len(p_model), 2))
+        corr = make_correspondences(scene.cameras, noisy, p_model, capacity=capacity)
+    else:
+        corr = _corr(scene, capacity=capacity)
+    return scene, corr
+
+
+@pytest.mark.parametrize(
+    "make_T",
+    [
+        lambda T: np.zeros((4, 4)),  # all-zero "pose"
+        lambda T: np.block([[2.0 * T[:3, :3], T[:3, 3:]], [np.eye(4)[3:]]]),  # scaled rotation
+        lambda T: np.block([[-T[:3, :3], T[:3, 3:]], [np.eye(4)[3:]]]),  # a reflection (det −1)
+        lambda T: np.vstack([T[:3], [[0.0, 0.0, 1.0, 1.0]]]),  # last row not (0, 0, 0, 1)
+    ],
+    ids=["zero", "scaled", "reflection", "last-row"],
+)
+def test_non_rigid_initial_pose_is_rejected(make_T):
+    model = jt.rigid_model(jnp.float64)
+    scene, corr = _rigid_scene()
+    T_bad = make_T(np.asarray(scene.T_world_root))
+    with pytest.raises(ValueError, match="T_init"):
+        jt.estimate_pose(model, corr, T_bad)
+    sol = solve_pose(model, corr, jnp.asarray(T_bad))
+    assert int(sol.status) == PoseStatus.INVALID_INPUT and not bool(sol.ok)
+    assert np.isfinite(sol.T_world_root).all()
+    np.testing.assert_array_equal(sol.T_world_root, T_bad)  # the input handed back, not a "solution"
+
+
+def test_rigidity_tolerance_follows_the_dtype():
+    """Rounding the pose to the solve's dtype (or to 8 digits, as BOP files store it) is accepted."""
+    for dtype in (np.float32, np.float64):
+        model = jt.rigid_model(dtype)
+        scene, corr = _rigid_scene(dtype=dtype)
+        T0 = perturb_pose(np.random.default_rng(1), scene.T_world_root, 0.1, 10.0)
+        for T in (T0.astype(dtype), np.round(T0, 8)):
+            sol = jt.estimate_pose(model, corr, T)
+            assert int(sol.status) == PoseStatus.OK
+        # 1% scale passes no dtype's tolerance.
+        scaled = T0.copy()
+        scaled[:3, :3] *= 1.01
+        with pytest.raises(ValueError, match="T_init's rotation block"):
+            jt.estimate_pose(model, corr, scaled.astype(dtype))
+    assert jt.solve._pose_solver.rigidity_tolerance(np.float32) > jt.solve._pose_solver.rigidity_tolerance(np.float64)
+
+
+def test_initial_pose_behind_the_camera_is_rejected_when_cameras_are_given():
+    model = jt.rigid_model(jnp.float64)
+    scene, corr = _rigid_scene()
+    cameras = scene.cameras
+    centre = np.asarray(cameras.center_world[0])
+    T_true = np.asarray(scene.T_world_root)
+    # The object mirrored through the camera centre: same lines, points behind the camera.
+    T_behind = T_true.copy()
+    T_behind[:3, 3] = 2 * centre - T_true[:3, 3]
+    assert float(jt.solve.fraction_behind_cameras(model, corr, jnp.asarray(T_behind), jnp.zeros(0), cameras)) > 0.9
+    assert float(jt.solve.fraction_behind_cameras(model, corr, jnp.asarray(T_true), jnp.zeros(0), cameras)) == 0.0
+    with pytest.raises(ValueError, match="T_init puts 100% of the correspondence weight behind the cameras"):
+        jt.estimate_pose(model, corr, T_behind, cameras=cameras)
+    sol = solve_pose(model, corr, jnp.asarray(T_behind), cameras=cameras)
+    assert int(sol.status) == PoseStatus.INVALID_INPUT
+    np.testing.assert_allclose(sol.T_world_root, T_behind)
+    # In front (a tracker's start near the truth) passes the same check, also for a rig of 2 cameras.
+    T0 = perturb_pose(np.random.default_rng(2), T_true, 0.2, 20.0)
+    assert int(jt.estimate_pose(model, corr, T0, cameras=cameras).status) == PoseStatus.OK
+    rig_scene = random_pose_scene(9, num_points=60, num_cameras=2)
+    rig_corr = _corr(rig_scene, capacity=64)
+    assert int(jt.estimate_pose(model, rig_corr, rig_scene.T_world_root, cameras=rig_scene.cameras).status) == PoseStatus.OK
+    # A camera index outside the rig is named.
+    wrong = eqx.tree_at(lambda c: c.camera, rig_corr, rig_corr.camera.at[0].set(5))
+    with pytest.raises(ValueError, match="correspondences.camera"):
+        jt.estimate_pose(model, wrong, rig_scene.T_world_root, cameras=rig_scene.cameras)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("layout", ["one-spot", "collinear"])
+def test_degenerate_point_sets_are_reported(layout, dtype):
+    """Coincident or collinear model points leave root directions free: DEGENERATE, initial pose back."""
+    model = jt.rigid_model(dtype)
+    rng = np.random.default_rng(4)
+    if layout == "one-spot":
+        p_model = np.tile(rng.uniform(-50, 50, (1, 3)), (40, 1))
+    else:
+        p_model = rng.uniform(-50, 50, (1, 3)) + np.linspace(-80, 80, 40)[:, None] * np.array([[0.36, 0.48, 0.8]])
+    scene, corr = _rigid_scene(p_model=p_model, dtype=dtype)
+    T0 = perturb_pose(np.random.default_rng(3), scene.T_world_root, 0.1, 10.0).astype(dtype)
+    sol = solve_pose(model, corr, jnp.asarray(T0))
+    assert int(sol.status) == PoseStatus.DEGENERATE and not bool(sol.ok)
+    np.testing.assert_array_equal(sol.T_world_root, T0)
+    with pytest.raises(jt.StatusError, match="DEGENERATE"):
+        jt.estimate_pose(model, corr, T0)
+    # throw=False: the status comes back instead of an exception.
+    assert int(jt.estimate_pose(model, corr, T0, throw=False).status) == PoseStatus.DEGENERATE
+    # The same solver on a spread-out set of the same size is OK (the check is not a blanket refusal).
+    spread_scene, spread = _rigid_scene(num_points=40, dtype=dtype)
+    assert int(solve_pose(model, spread, jnp.asarray(spread_scene.T_world_root, dtype)).status) == PoseStatus.OK
+
+
+def test_status_priority_names_the_cause():
+    """An invalid input is reported as such even when it would also be degenerate or too few."""
+    model = jt.rigid_model(jnp.float64)
+    _, corr = _rigid_scene(p_model=np.zeros((10, 3)))
+    assert int(solve_pose(model, corr, jnp.zeros((4, 4))).status) == PoseStatus.INVALID_INPUT
+    few = corr.with_weight(corr.weight.at[2:].set(0.0))
+    assert int(solve_pose(model, few, jnp.eye(4)).status) == PoseStatus.TOO_FEW

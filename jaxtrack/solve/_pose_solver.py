@@ -458,7 +458,9 @@ def estimate_pose(
     dtype = corr.n.dtype
     _check_rigid(T_init, dtype)
     theta = np.zeros(model.num_joints) if theta_init is None else np.asarray(theta_init)
-    status = Status(int(input_status(model, corr, jnp.asarray(T_init, dtype), jnp.asarray(theta, dtype), cameras)))
+    # The compiled solve checks its inputs first (never raising); its status is turned into an error here.
+    sol = solve_pose(model, corr, T_init, theta_init, config, cameras)
+    status = Status(int(sol.status))
     if status == Status.INVALID_INPUT:
         reason = _describe_invalid(model, corr, T_init, theta, cameras)
         if reason == "invalid pose-solver input" and cameras is not None:
@@ -474,6 +476,5 @@ def estimate_pose(
             f"too few effective correspondences: {int(corr.num_effective())} with positive weight give "
             f"{2 * int(corr.num_effective())} constraints for {model.num_dof} degrees of freedom"
         )
-    sol = solve_pose(model, corr, T_init, theta_init, config, cameras)
     check_status(sol.status, throw=throw, context="estimate_pose")
     return sol
