@@ -12,9 +12,12 @@ differences; a smoothness term counts only where both of its pixels lie in Ω1.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jax.typing import ArrayLike
 
 from ...image import as_channels as _channels
 from ...image import image_gradients, warp_bilinear
@@ -63,7 +66,9 @@ MIDDLEBURY_ALPHA = 4.0
 MIDDLEBURY_GAMMA = 5.0
 
 
-def smoothness_s2(U, V, in_x, in_y, right=kp, down=ip):
+def smoothness_s2(
+    U: jax.Array, V: jax.Array, in_x: jax.Array, in_y: jax.Array, right: Callable = kp, down: Callable = ip
+) -> jax.Array:
     """|∇w|² per pixel: forward differences on the edges (p, p+x) and (p, p+y) that lie inside Ω1.
 
     `in_x`/`in_y` mark those edges; `right`/`down` give the neighbour values (full layout by default,
@@ -75,7 +80,14 @@ def smoothness_s2(U, V, in_x, in_y, right=kp, down=ip):
     return jnp.where(in_x, dux * dux + dvx * dvx, 0.0) + jnp.where(in_y, duy * duy + dvy * dvy, 0.0)
 
 
-def local_flow_energy(flow, img1, img2, params: FlowEnergyParams, data_weight=None, region=None):
+def local_flow_energy(
+    flow: jax.Array,
+    img1: ArrayLike,
+    img2: ArrayLike,
+    params: FlowEnergyParams,
+    data_weight: ArrayLike | None = None,
+    region: ArrayLike | None = None,
+) -> jax.Array:
     """Per-pixel energy density e(x) (H, W) of eq. 6 (data + α · smoothness); its sum is E.
 
     Args:
@@ -88,7 +100,7 @@ def local_flow_energy(flow, img1, img2, params: FlowEnergyParams, data_weight=No
     img1, img2 = _channels(img1).astype(flow.dtype), _channels(img2).astype(flow.dtype)
     h, w = img1.shape[:2]
     r = jnp.ones((h, w), flow.dtype) if data_weight is None else data_weight.astype(flow.dtype)
-    omega = jnp.ones((h, w), bool) if region is None else region.astype(bool)
+    in_region = jnp.ones((h, w), bool) if region is None else jnp.asarray(region, bool)
     eps2 = params.epsilon**2
     g1x, g1y = image_gradients(img1)
     g2x, g2y = image_gradients(img2)
@@ -101,19 +113,26 @@ def local_flow_energy(flow, img1, img2, params: FlowEnergyParams, data_weight=No
         psi_data = jnp.sqrt(grey2 + eps2) + params.gamma * jnp.sqrt(grad2 + eps2)
     else:
         psi_data = jnp.sqrt(grey2 + params.gamma * grad2 + eps2)
-    data = jnp.where(omega & inside, r * psi_data, 0.0)
-    in_x, in_y = omega & kp(omega), omega & ip(omega)
+    data = jnp.where(in_region & inside, r * psi_data, 0.0)
+    in_x, in_y = in_region & kp(in_region), in_region & ip(in_region)
     grad_sq = smoothness_s2(flow[..., 0], flow[..., 1], in_x, in_y)
     smooth = jnp.sqrt(grad_sq + eps2) if params.robust_smoothness else grad_sq
-    smooth = jnp.where(omega, smooth, 0.0)
+    smooth = jnp.where(in_region, smooth, 0.0)
     return data + params.alpha * smooth
 
 
-def flow_energy(flow, img1, img2, params: FlowEnergyParams, data_weight=None, region=None):
+def flow_energy(
+    flow: jax.Array,
+    img1: ArrayLike,
+    img2: ArrayLike,
+    params: FlowEnergyParams,
+    data_weight: ArrayLike | None = None,
+    region: ArrayLike | None = None,
+) -> jax.Array:
     """E(u, v) of eq. 6 (scalar): the sum of `local_flow_energy`."""
     return jnp.sum(local_flow_energy(flow, img1, img2, params, data_weight, region))
 
 
-def flow_confidence(local_energy, beta):
+def flow_confidence(local_energy: jax.Array, beta: ArrayLike) -> jax.Array:
     """Confidence c(x) = β / (1 + e(x)) of eq. 8 (β = 12 quadratic, 3 robust)."""
     return beta / (1.0 + local_energy)

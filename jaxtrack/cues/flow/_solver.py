@@ -28,7 +28,9 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike, DTypeLike
 
+from ..._status import Status, check_status, first_failure, is_usable, status_where
 from ...image import (
     downsample,
     gaussian_blur,
@@ -60,7 +62,7 @@ class FlowConfig(eqx.Module):
         warps: outer fixed-point iterations (warps) per level.
         lagged: inner fixed-point iterations (robust weights frozen) per warp.
         sor_iters: red-black SOR sweeps per inner iteration.
-        omega: SOR relaxation factor, 0 < ω < 2.
+        sor_relaxation: SOR over-relaxation factor ω_SOR, 0 < ω_SOR < 2 (not Ω1, the region, nor Φ).
         finest_warps: extra warps at the finest level (0: the same as every level).
         median: side of a median filter applied to the flow (0 = off, 3 or 5). A heuristic
             from Sun, Roth and Black (CVPR 2010) that removes outliers of the linearised solution;
@@ -76,7 +78,7 @@ class FlowConfig(eqx.Module):
     warps: int = eqx.field(static=True, default=8)
     lagged: int = eqx.field(static=True, default=2)
     sor_iters: int = eqx.field(static=True, default=20)
-    omega: float = eqx.field(static=True, default=1.8)
+    sor_relaxation: float = eqx.field(static=True, default=1.8)
     finest_warps: int = eqx.field(static=True, default=0)
     median: int = eqx.field(static=True, default=0)
     median_every_warp: bool = eqx.field(static=True, default=True)
@@ -84,8 +86,8 @@ class FlowConfig(eqx.Module):
     def __check_init__(self):
         if not 0.0 < self.eta < 1.0:
             raise ValueError(f"FlowConfig.eta must lie in (0, 1), got {self.eta}")
-        if not 0.0 < self.omega < 2.0:
-            raise ValueError(f"FlowConfig.omega must lie in (0, 2), got {self.omega}")
+        if not 0.0 < self.sor_relaxation < 2.0:
+            raise ValueError(f"FlowConfig.sor_relaxation must lie in (0, 2), got {self.sor_relaxation}")
         if self.median not in (0, 3, 5):
             raise ValueError(f"FlowConfig.median must be 0 (off), 3 or 5 (window side), got {self.median}")
         for name in ("min_size", "max_levels", "warps", "lagged", "sor_iters"):
@@ -112,12 +114,16 @@ class FlowResult(eqx.Module):
         local_energy: (H, W) energy density e(x) of eq. 6 at the solution (0 outside Ω1).
         confidence: (H, W) c(x) = β / (1 + e(x)) of eq. 8 inside Ω1, 0 outside.
         region: (H, W) bool Ω1 as used.
+        status: int32 `jaxtrack.Status`: OK; INVALID_INPUT when an input was non-finite or a parameter
+            lay outside its domain (α ≥ 0, γ ≥ 0, ε > 0); NONFINITE when the solution was not finite.
+            When not OK, flow, local_energy and confidence are zeros (never NaN).
     """
 
     flow: jax.Array
     local_energy: jax.Array
     confidence: jax.Array
     region: jax.Array
+    status: jax.Array
 
 
 class MotionTensor(NamedTuple):
@@ -150,14 +156,14 @@ def default_beta(params: FlowEnergyParams) -> float:
     return 3.0 if params.robust_smoothness else 12.0
 
 
-def prepare_image(img, sigma: float, dtype=jnp.float32):
+def prepare_image(img: ArrayLike, sigma: float, dtype: DTypeLike = jnp.float32) -> jax.Array:
     """(H, W) or (H, W, C) image → float (H, W, C), pre-smoothed with Gaussian σ (static)."""
     img = jnp.asarray(img)
     img = img[..., None] if img.ndim == 2 else img
     return gaussian_blur(img.astype(dtype), sigma)
 
 
-def derivative_stack(img2):
+def derivative_stack(img2: jax.Array) -> jax.Array:
     """[I2, ∂x I2, ∂y I2, ∂xx I2, ∂xy I2, ∂yy I2] on I2's grid (5-point stencil), (H, W, 6C)."""
     g2x, g2y = image_gradients(img2)
     g2xx, g2xy = image_gradients(g2x)
@@ -171,7 +177,7 @@ def _tensor(warped, inside, i1_stack, data_weight, region) -> MotionTensor:
     i2, ix, iy, ixx, ixy, iyy = (warped[..., k * c : (k + 1) * c] for k in range(6))
     i1, g1x, g1y = (i1_stack[..., k * c : (k + 1) * c] for k in range(3))
     iz, ixz, iyz = i2 - i1, ix - g1x, iy - g1y
-    s = lambda a: jnp.sum(a, -1)  # noqa: E731 - sum over colour channels
+    s = lambda a: jnp.sum(a, -1)  # sum over colour channels
     grey = (s(ix * ix), s(ix * iy), s(iy * iy), s(ix * iz), s(iy * iz), s(iz * iz))
     grad = (
         s(ixx * ixx + ixy * ixy),
@@ -185,7 +191,9 @@ def _tensor(warped, inside, i1_stack, data_weight, region) -> MotionTensor:
     return MotionTensor(*grey, *grad, rho)
 
 
-def motion_tensor(flow, img1, img2, data_weight, region) -> MotionTensor:
+def motion_tensor(
+    flow: jax.Array, img1: jax.Array, img2: jax.Array, data_weight: jax.Array, region: jax.Array
+) -> MotionTensor:
     """Linearise the data term of eq. 6 around `flow` (the outer fixed point's linearisation).
 
     I2, ∂xI2, ∂yI2 and the second derivatives are taken on I2's grid (5-point stencil) and then
@@ -239,7 +247,15 @@ def _data_energy(J: MotionTensor, du, dv, params: FlowEnergyParams):
     return J.rho * jnp.sqrt(sg + params.gamma * sd + eps2)
 
 
-def linearised_flow_energy(dflow, flow, img1, img2, params: FlowEnergyParams, data_weight=None, region=None):
+def linearised_flow_energy(
+    dflow: jax.Array,
+    flow: jax.Array,
+    img1: jax.Array,
+    img2: jax.Array,
+    params: FlowEnergyParams,
+    data_weight: ArrayLike | None = None,
+    region: ArrayLike | None = None,
+) -> jax.Array:
     """Eq. 6 with the data term linearised around `flow` (what one warp of the solver minimises).
 
     E_lin(dw) = Σ ρ Ψ(s_g² + γ s_d²) + α Σ Ψ2(|∇(w + dw)|²) (or the separate-penalty form), the s² from
@@ -252,15 +268,15 @@ def linearised_flow_energy(dflow, flow, img1, img2, params: FlowEnergyParams, da
     """
     img1 = img1[..., None] if img1.ndim == 2 else img1
     img2 = img2[..., None] if img2.ndim == 2 else img2
-    r, omega = weight_and_region(img1.shape[:2], data_weight, region, flow.dtype)
-    J = motion_tensor(flow, img1.astype(flow.dtype), img2.astype(flow.dtype), r, omega)
+    r, in_region = weight_and_region(img1.shape[:2], data_weight, region, flow.dtype)
+    J = motion_tensor(flow, img1.astype(flow.dtype), img2.astype(flow.dtype), r, in_region)
     eps2 = params.epsilon**2
     data = _data_energy(J, dflow[..., 0], dflow[..., 1], params)
-    in_x, in_y = omega & kp(omega), omega & ip(omega)
+    in_x, in_y = in_region & kp(in_region), in_region & ip(in_region)
     W = flow + dflow
     g = smoothness_s2(W[..., 0], W[..., 1], in_x, in_y)
     smooth = jnp.sqrt(g + eps2) if params.robust_smoothness else g
-    return jnp.sum(data) + params.alpha * jnp.sum(jnp.where(omega, smooth, 0.0))
+    return jnp.sum(data) + params.alpha * jnp.sum(jnp.where(in_region, smooth, 0.0))
 
 
 def _solve_increment(J: MotionTensor, u, v, region, params: FlowEnergyParams, config: FlowConfig):
@@ -276,7 +292,7 @@ def _solve_increment(J: MotionTensor, u, v, region, params: FlowEnergyParams, co
     eps2 = params.epsilon**2
     alpha = params.alpha
     in_x, in_y = region & q_right(region), region & q_down(region)
-    om = jnp.asarray(config.omega, dtype)
+    relax = jnp.asarray(config.sor_relaxation, dtype)
 
     def inner(_, carry):
         du, dv = carry
@@ -309,7 +325,7 @@ def _solve_increment(J: MotionTensor, u, v, region, params: FlowEnergyParams, co
             m11, m12, m22, cu, cv, we, ww, ws, wn = c
             bu = cu + we * nbr_u[0] + ww * nbr_u[1] + ws * nbr_u[2] + wn * nbr_u[3]
             bv = cv + we * nbr_v[0] + ww * nbr_v[1] + ws * nbr_v[2] + wn * nbr_v[3]
-            return x_u + om * (m11 * bu + m12 * bv - x_u), x_v + om * (m12 * bu + m22 * bv - x_v)
+            return x_u + relax * (m11 * bu + m12 * bv - x_u), x_v + relax * (m12 * bu + m22 * bv - x_v)
 
         # Neighbours (right, left, down, up) of each sub-grid in terms of the other colour's sub-grids.
         def nbr_a(b, c):
@@ -339,7 +355,7 @@ def _solve_increment(J: MotionTensor, u, v, region, params: FlowEnergyParams, co
     return jax.lax.fori_loop(0, config.lagged, inner, (zero, zero))
 
 
-def median_filter_flow(flow, region, size: int = 3):
+def median_filter_flow(flow: jax.Array, region: jax.Array, size: int = 3) -> jax.Array:
     """Median of each flow component over a size x size window (size 3 or 5), inside Ω1, (H, W, 2).
 
     Window pixels outside Ω1 (or beyond the border) take the centre pixel's value, so the filter
@@ -379,19 +395,24 @@ def _level(flow, img1, img2, r, region, params, config: FlowConfig, warps: int):
     return flow
 
 
-def _compute_flow(img1, img2, params, config, data_weight, region, init_flow, record=False):
-    """Coarse-to-fine loop over the pyramid (H, W even). With `record`, also the energies per level."""
+def _compute_flow(inputs: FlowInputs, config: FlowConfig, record: bool = False):
+    """Coarse-to-fine loop over the pyramid; `inputs` padded to even sides (`FlowInputs.padded_even`).
+
+    Returns the (H, W, 2) flow (zero outside Ω1); with `record`, also the energies per level (L, 2).
+    """
+    img1, img2, params, region = inputs.img1, inputs.img2, inputs.params, inputs.region
     h, w = img1.shape[:2]
     dtype = img1.dtype
     shapes = pyramid_shapes(h, w, config.eta, min(config.min_size, h, w), config.max_levels)
-    i1s, i2s, rs, oms = [img1], [img2], [data_weight[..., None]], [region[..., None].astype(dtype)]
+    i1s, i2s, rs, oms = [img1], [img2], [inputs.data_weight[..., None]], [region[..., None].astype(dtype)]
     for shape in shapes[1:]:
         i1s.append(downsample(i1s[-1], shape, config.eta))
         i2s.append(downsample(i2s[-1], shape, config.eta))
         rs.append(downsample(rs[-1], shape, config.eta))
         oms.append(downsample(oms[-1], shape, config.eta))
     ch, cw = shapes[-1]
-    flow = jnp.zeros((ch, cw, 2), dtype) if init_flow is None else upsample_flow(jnp.asarray(init_flow, dtype), (ch, cw))
+    init_flow = inputs.init_flow
+    flow = jnp.zeros((ch, cw, 2), dtype) if init_flow is None else upsample_flow(init_flow, (ch, cw))
     energies = []
     for k in range(len(shapes) - 1, -1, -1):
         if flow.shape[:2] != shapes[k]:
@@ -410,22 +431,66 @@ def _compute_flow(img1, img2, params, config, data_weight, region, init_flow, re
     return flow
 
 
-def check_flow_inputs(img1, img2, data_weight=None, region=None, init_flow=None):
-    """Raise ValueError naming the argument when frames or optional fields have wrong shapes."""
+def _first_nonfinite(a) -> tuple[int, tuple[int, ...]]:
+    """Host: number of non-finite entries of `a` and the (row, column) of the first one."""
+    bad = ~np.isfinite(np.asarray(a))
+    if bad.ndim > 2:  # channels / flow components: a pixel is bad if any of its values is
+        bad = bad.reshape(bad.shape[:2] + (-1,)).any(-1)
+    count = int(bad.sum())
+    return count, (tuple(int(i) for i in np.argwhere(bad)[0]) if count else ())
+
+
+def _is_concrete(a) -> bool:
+    return a is not None and not isinstance(a, jax.core.Tracer)
+
+
+def check_flow_inputs(
+    img1: ArrayLike,
+    img2: ArrayLike,
+    data_weight: ArrayLike | None = None,
+    region: ArrayLike | None = None,
+    init_flow: ArrayLike | None = None,
+    where: str = "compute_flow",
+) -> None:
+    """The API edge: raise ValueError naming the argument for wrong shapes or non-finite values.
+
+    Shapes are always checked; values only when concrete (not under an outer `jit`, where the same
+    problems come back as `FlowResult.status` = INVALID_INPUT instead).
+    """
     img1, img2 = jnp.asarray(img1), jnp.asarray(img2)
     if img1.ndim not in (2, 3) or img1.shape != img2.shape:
         raise ValueError(
-            f"compute_flow: frames must be (H, W) or (H, W, C) of the same shape, got {img1.shape} and {img2.shape}"
+            f"{where}: frames must be (H, W) or (H, W, C) of the same shape, got {img1.shape} and {img2.shape}"
         )
     if min(img1.shape[:2]) < 4:
-        raise ValueError(f"compute_flow: frames must be at least 4x4 pixels, got {img1.shape[:2]}")
+        raise ValueError(f"{where}: frames must be at least 4x4 pixels, got {img1.shape[:2]}")
     hw = img1.shape[:2]
     for name, a, extra in (("data_weight", data_weight, ()), ("region", region, ()), ("init_flow", init_flow, (2,))):
         if a is not None and tuple(jnp.shape(a)) != hw + extra:
-            raise ValueError(f"compute_flow: {name} must have shape {hw + extra}, got {tuple(jnp.shape(a))}")
+            raise ValueError(f"{where}: {name} must have shape {hw + extra}, got {tuple(jnp.shape(a))}")
+    for name, a in (("img1", img1), ("img2", img2), ("data_weight", data_weight), ("init_flow", init_flow)):
+        if _is_concrete(a):
+            count, first = _first_nonfinite(a)
+            if count:
+                what = "pixel(s)" if name.startswith("img") else "value(s)"
+                raise ValueError(f"{where}: {name} has {count} non-finite {what}, first at (y, x) = {first}")
 
 
-def weight_and_region(shape, data_weight, region, dtype):
+def check_flow_params(params: FlowEnergyParams, where: str = "compute_flow") -> None:
+    """The API edge: raise ValueError unless α ≥ 0, γ ≥ 0 and ε > 0 (all finite), when concrete."""
+    for name, value, strict in (("alpha", params.alpha, False), ("gamma", params.gamma, False), ("epsilon", params.epsilon, True)):
+        if not _is_concrete(value):
+            continue
+        v = np.asarray(value, np.float64)
+        ok = np.isfinite(v) & ((v > 0) if strict else (v >= 0))
+        if not np.all(ok):
+            bound = "> 0" if strict else "≥ 0"
+            raise ValueError(f"{where}: params.{name} must be finite and {bound}, got {v[~ok].reshape(-1)[0]:g}")
+
+
+def weight_and_region(
+    shape: tuple[int, int], data_weight: ArrayLike | None, region: ArrayLike | None, dtype: DTypeLike
+) -> tuple[jax.Array, jax.Array]:
     """r(x) (default 1) and Ω1 (default: the whole image) as (H, W) arrays of `dtype` and bool."""
     r = jnp.ones(shape, dtype) if data_weight is None else jnp.asarray(data_weight, dtype)
     om = jnp.ones(shape, bool) if region is None else jnp.asarray(region, bool)
@@ -434,6 +499,8 @@ def weight_and_region(shape, data_weight, region, dtype):
 
 def _pad_even(a, fill):
     """Pad rows/columns at the bottom/right so both sides are even (edge-replicated or `fill`)."""
+    if a is None:
+        return None
     h, w = a.shape[:2]
     pad = [(0, h % 2), (0, w % 2)] + [(0, 0)] * (a.ndim - 2)
     if fill is None:
@@ -441,31 +508,141 @@ def _pad_even(a, fill):
     return jnp.pad(a, pad, constant_values=fill)
 
 
-def _prepared(img1, img2, config, data_weight, region, init_flow, dtype):
-    """Smoothed float frames, r clipped to [0, 1], Ω1 as bool, all padded to even sides."""
-    img1 = prepare_image(img1, config.presmooth_sigma, dtype)
-    img2 = prepare_image(img2, config.presmooth_sigma, dtype)
-    r = jnp.clip(jnp.asarray(data_weight, dtype), 0.0, 1.0)
-    om = jnp.asarray(region, bool)
-    init = None if init_flow is None else _pad_even(jnp.asarray(init_flow, dtype), None)
-    # Odd sides get one padding row/column outside Ω1 (the solver's parity layout needs even sides).
-    padded = (_pad_even(img1, None), _pad_even(img2, None), _pad_even(r, 0.0), _pad_even(om, False), init)
-    return img1, img2, r, om, padded
+class FlowInputs(eqx.Module):
+    """The minimiser's inputs after `prepare_inputs`: validated values, named fields.
+
+    Non-finite input values and out-of-domain parameters are replaced by safe ones (0 for pixels,
+    weights and start flows; α = γ = 0, ε = 0.001) so that nothing NaN enters the solver, and
+    flagged in `status`; the caller then returns zeros with that status.
+
+    Attributes:
+        img1, img2: (H, W, C) pre-smoothed float frames.
+        data_weight: (H, W) r(x) clipped to [0, 1].
+        region: (H, W) bool Ω1.
+        init_flow: (H, W, 2) flow to start from, or None (start from zero).
+        params: the parameters of eq. 6 as used.
+        status: int32 `Status.INVALID_INPUT` if anything was replaced, else OK.
+    """
+
+    img1: jax.Array
+    img2: jax.Array
+    data_weight: jax.Array
+    region: jax.Array
+    init_flow: jax.Array | None
+    params: FlowEnergyParams
+    status: jax.Array
+
+    def padded_even(self) -> FlowInputs:
+        """The same inputs padded at the bottom/right to even sides (the parity layout needs them):
+        frames and start flow edge-replicated, the padding outside Ω1 and with r = 0."""
+        return FlowInputs(
+            _pad_even(self.img1, None),
+            _pad_even(self.img2, None),
+            _pad_even(self.data_weight, 0.0),
+            _pad_even(self.region, False),
+            _pad_even(self.init_flow, None),
+            self.params,
+            self.status,
+        )
 
 
-def flow_core(img1, img2, params, config: FlowConfig, data_weight, region, init_flow, beta, dtype) -> FlowResult:
+def _finite_or_zero(a):
+    ok = jnp.isfinite(a)
+    return jnp.where(ok, a, jnp.zeros((), a.dtype)), jnp.all(ok)
+
+
+def _safe_params(params: FlowEnergyParams):
+    """Parameters with out-of-domain values replaced (α, γ → 0, ε → 0.001) and whether all were valid."""
+    alpha, gamma, eps = (jnp.asarray(v) for v in (params.alpha, params.gamma, params.epsilon))
+    ok_a = jnp.isfinite(alpha) & (alpha >= 0)
+    ok_g = jnp.isfinite(gamma) & (gamma >= 0)
+    ok_e = jnp.isfinite(eps) & (eps > 0)
+    safe = FlowEnergyParams(
+        jnp.where(ok_a, alpha, 0.0),
+        jnp.where(ok_g, gamma, 0.0),
+        jnp.where(ok_e, eps, 1e-3),
+        params.robust_smoothness,
+        params.separate_penalties,
+    )
+    return safe, ok_a & ok_g & ok_e
+
+
+def prepare_inputs(
+    img1: ArrayLike,
+    img2: ArrayLike,
+    params: FlowEnergyParams,
+    config: FlowConfig,
+    data_weight: ArrayLike,
+    region: ArrayLike,
+    init_flow: ArrayLike | None,
+    dtype: DTypeLike,
+) -> FlowInputs:
+    """Validate and prepare the solver's inputs (traceable): float frames pre-smoothed with
+    `config.presmooth_sigma`, r clipped to [0, 1], Ω1 as bool; non-finite values and out-of-domain
+    parameters replaced and flagged (`FlowInputs.status` = INVALID_INPUT)."""
+    frames = []
+    ok = jnp.asarray(True)
+    for img in (img1, img2):
+        img = jnp.asarray(img)
+        img = (img[..., None] if img.ndim == 2 else img).astype(dtype)
+        img, finite = _finite_or_zero(img)  # before the blur, which would spread a NaN
+        ok = ok & finite
+        frames.append(gaussian_blur(img, config.presmooth_sigma))
+    r, finite = _finite_or_zero(jnp.asarray(data_weight, dtype))
+    ok = ok & finite
+    init = None
+    if init_flow is not None:
+        init, finite = _finite_or_zero(jnp.asarray(init_flow, dtype))
+        ok = ok & finite
+    safe, params_ok = _safe_params(params)
+    status = status_where(ok & params_ok, Status.OK, Status.INVALID_INPUT)
+    return FlowInputs(frames[0], frames[1], jnp.clip(r, 0.0, 1.0), jnp.asarray(region, bool), init, safe, status)
+
+
+def _nonfinite_status(*arrays):
+    finite = jnp.asarray(True)
+    for a in arrays:
+        finite = finite & jnp.all(jnp.isfinite(a))
+    return status_where(finite, Status.OK, Status.NONFINITE)
+
+
+def flow_core(
+    img1: ArrayLike,
+    img2: ArrayLike,
+    params: FlowEnergyParams,
+    config: FlowConfig,
+    data_weight: ArrayLike,
+    region: ArrayLike,
+    init_flow: ArrayLike | None,
+    beta: ArrayLike,
+    dtype: DTypeLike,
+) -> FlowResult:
     """The traceable body of `compute_flow` (no host checks; all optional inputs given as arrays).
 
     Args:
         img1, img2: (H, W) or (H, W, C) frames; data_weight (H, W) float; region (H, W) bool;
         init_flow (H, W, 2) or None; beta scalar.
+
+    Returns:
+        `FlowResult`; on a failure (status INVALID_INPUT or NONFINITE) flow, energy and confidence are
+        zeros.
     """
-    img1, img2, r, om, (p1, p2, pr, pom, init) = _prepared(img1, img2, config, data_weight, region, init_flow, dtype)
-    h, w = img1.shape[:2]
-    flow = _compute_flow(p1, p2, params, config, pr, pom, init)[:h, :w]
-    e = jnp.where(om, local_flow_energy(flow, img1, img2, params, r, om), 0.0)
+    inputs = prepare_inputs(img1, img2, params, config, data_weight, region, init_flow, dtype)
+    h, w = inputs.img1.shape[:2]
+    flow = _compute_flow(inputs.padded_even(), config)[:h, :w]
+    om = inputs.region
+    e = jnp.where(om, local_flow_energy(flow, inputs.img1, inputs.img2, inputs.params, inputs.data_weight, om), 0.0)
     conf = jnp.where(om, beta / (1.0 + e), 0.0)
-    return FlowResult(flow, e, conf, om)
+    # The cause before its consequence: invalid input usually also makes the solution non-finite.
+    status = first_failure(inputs.status, _nonfinite_status(flow, e, conf))
+    ok = status == Status.OK
+    zero = lambda a: jnp.where(ok, a, jnp.zeros((), a.dtype))
+    return FlowResult(zero(flow), zero(e), zero(conf), om, status)
+
+
+def checked_result(result: eqx.Module, throw: bool, context: str):
+    """Pass `result.status` through `check_status` (raises for a failure when `throw`)."""
+    return eqx.tree_at(lambda r: r.status, result, check_status(result.status, throw, context))
 
 
 @eqx.debug.assert_max_traces(max_traces=None)  # counts traces (`eqx.debug.get_num_traces`), never fails
@@ -479,55 +656,86 @@ _compute_flow_jit = eqx.filter_jit(_compute_flow_body)
 
 @eqx.filter_jit
 def _level_energies_jit(img1, img2, params, config, data_weight, region, dtype):
-    _, _, _, _, (p1, p2, pr, pom, _) = _prepared(img1, img2, config, data_weight, region, None, dtype)
-    return _compute_flow(p1, p2, params, config, pr, pom, None, record=True)[1]
+    inputs = prepare_inputs(img1, img2, params, config, data_weight, region, None, dtype)
+    return _compute_flow(inputs.padded_even(), config, record=True)[1]
 
 
 @eqx.filter_jit
 def _refine_jit(flow, img1, img2, params, config, data_weight, region, dtype):
-    img1p, _, _, _, (p1, p2, pr, pom, init) = _prepared(img1, img2, config, data_weight, region, flow, dtype)
-    h, w = img1p.shape[:2]
-    out = _level(init, p1, p2, pr, pom, params, config, config.warps)[:h, :w]
-    return jnp.where(jnp.asarray(region, bool)[..., None], out, flow.astype(dtype))
+    inputs = prepare_inputs(img1, img2, params, config, data_weight, region, flow, dtype)
+    even = inputs.padded_even()
+    h, w = inputs.img1.shape[:2]
+    out = _level(even.init_flow, even.img1, even.img2, even.data_weight, even.region, even.params, config, config.warps)
+    out = jnp.where(inputs.region[..., None], out[:h, :w], inputs.init_flow)
+    status = first_failure(inputs.status, _nonfinite_status(out))
+    return jnp.where(status == Status.OK, out, jnp.zeros((), out.dtype)), status
 
 
 def refine_flow(
-    flow, img1, img2, params: FlowEnergyParams, config: FlowConfig = FlowConfig(), data_weight=None, region=None, dtype=jnp.float32
-):
+    flow: ArrayLike,
+    img1: ArrayLike,
+    img2: ArrayLike,
+    params: FlowEnergyParams,
+    config: FlowConfig | None = None,
+    data_weight: ArrayLike | None = None,
+    region: ArrayLike | None = None,
+    dtype: DTypeLike = jnp.float32,
+    throw: bool = True,
+) -> jax.Array:
     """`config.warps` warps at full resolution only, starting from `flow` (no pyramid), (H, W, 2).
 
     For a flow that is already close (a prediction from the previous pose, or a coarse solution).
     With warps = 1 it returns w + dw, dw the minimiser of `linearised_flow_energy(·, w, ...)`
     found by the lagged-nonlinearity / SOR iterations.
+
+    Raises:
+        ValueError: wrong shapes, non-finite values in `flow`, the frames or `data_weight`, or
+            parameters outside their domain (α ≥ 0, γ ≥ 0, ε > 0).
+        StatusError: with `throw`, when the result is not finite (else the flow comes back as zeros).
     """
-    check_flow_inputs(img1, img2, data_weight, region, flow)
+    config = FlowConfig() if config is None else config
+    check_flow_inputs(img1, img2, data_weight, region, flow, where="refine_flow")
+    check_flow_params(params, where="refine_flow")
     r, om = weight_and_region(jnp.shape(img1)[:2], data_weight, region, dtype)
-    return _refine_jit(jnp.asarray(flow, dtype), jnp.asarray(img1), jnp.asarray(img2), params, config, r, om, dtype)
+    out, status = _refine_jit(jnp.asarray(flow, dtype), jnp.asarray(img1), jnp.asarray(img2), params, config, r, om, dtype)
+    if throw and isinstance(status, jax.core.Tracer):  # under an outer jit: a runtime error of the program
+        return eqx.error_if(out, ~is_usable(status), "refine_flow: unusable status (see jaxtrack.Status)")
+    check_status(status, throw, "refine_flow")
+    return out
 
 
 def flow_level_energies(
-    img1, img2, params: FlowEnergyParams, config: FlowConfig = FlowConfig(), data_weight=None, region=None, dtype=jnp.float32
-):
+    img1: ArrayLike,
+    img2: ArrayLike,
+    params: FlowEnergyParams,
+    config: FlowConfig | None = None,
+    data_weight: ArrayLike | None = None,
+    region: ArrayLike | None = None,
+    dtype: DTypeLike = jnp.float32,
+) -> jax.Array:
     """Diagnostic: eq. 6 per pyramid level before and after that level's warps, (L, 2), finest first.
 
     Row k holds E_k(flow entering level k) and E_k(flow leaving it), each evaluated on level k's
     images, r and Ω1 (so rows are comparable only within themselves).
     """
-    check_flow_inputs(img1, img2, data_weight, region)
+    config = FlowConfig() if config is None else config
+    check_flow_inputs(img1, img2, data_weight, region, where="flow_level_energies")
+    check_flow_params(params, where="flow_level_energies")
     r, om = weight_and_region(jnp.shape(img1)[:2], data_weight, region, dtype)
     return _level_energies_jit(jnp.asarray(img1), jnp.asarray(img2), params, config, r, om, dtype)
 
 
 def compute_flow(
-    img1,
-    img2,
+    img1: ArrayLike,
+    img2: ArrayLike,
     params: FlowEnergyParams,
-    config: FlowConfig = FlowConfig(),
-    data_weight=None,
-    region=None,
-    init_flow=None,
-    beta=None,
-    dtype=jnp.float32,
+    config: FlowConfig | None = None,
+    data_weight: ArrayLike | None = None,
+    region: ArrayLike | None = None,
+    init_flow: ArrayLike | None = None,
+    beta: ArrayLike | None = None,
+    dtype: DTypeLike = jnp.float32,
+    throw: bool = True,
 ) -> FlowResult:
     """Dense flow from img1 to img2 minimising eq. 6 inside Ω1 (Brox et al. 2004 numerics).
 
@@ -537,7 +745,7 @@ def compute_flow(
     Args:
         img1, img2: (H, W) or (H, W, C) frames on the 0-255 scale (any real or integer dtype).
         params: α, γ, ε and the smoothness type (`articulated_params()`, `rigid_params()`).
-        config: the minimiser's static settings.
+        config: the minimiser's static settings (default `FlowConfig()`).
         data_weight: optional (H, W) r(x) ∈ [0, 1]; 0 switches the data term off (occluded pixels),
             whose flow is then filled in by the smoothness term.
         region: optional (H, W) bool Ω1; the energy is integrated inside it only (default: the whole
@@ -545,10 +753,18 @@ def compute_flow(
         init_flow: optional (H, W, 2) flow to start from (e.g. predicted by the previous pose).
         beta: β of eq. 8 (default 3 robust / 12 quadratic).
         dtype: float type of the computation.
+        throw: raise `StatusError` when `FlowResult.status` is a failure (else return it with zeros).
 
     Returns:
-        `FlowResult` with the flow, the local energy and the confidence of eq. 8.
+        `FlowResult` with the flow, the local energy, the confidence of eq. 8 and a status.
+
+    Raises:
+        ValueError: naming the argument: wrong shapes, non-finite pixels/weights/start flow, or
+            parameters outside their domain (α ≥ 0, γ ≥ 0, ε > 0), checked when concrete.
     """
-    check_flow_inputs(img1, img2, data_weight, region, init_flow)
+    config = FlowConfig() if config is None else config
+    check_flow_inputs(img1, img2, data_weight, region, init_flow, where="compute_flow")
+    check_flow_params(params, where="compute_flow")
     beta = default_beta(params) if beta is None else beta
-    return _compute_flow_jit(img1, img2, params, config, data_weight, region, init_flow, jnp.asarray(beta, dtype), dtype)
+    res = _compute_flow_jit(img1, img2, params, config, data_weight, region, init_flow, jnp.asarray(beta, dtype), dtype)
+    return checked_result(res, throw, "compute_flow")
