@@ -126,12 +126,12 @@ def main(argv=None):
     lines = [
         "# Optical flow: jaxtrack (Brox et al. 2004 energy) vs OpenCV DIS (medium) and Farneback",
         "",
-        f"Command: `python experiments/bench_flow.py{' --quick' if args.quick else ''}`; {platform.processor() or platform.machine()}, "
+        (f"Command: `python experiments/bench_flow.py{' --quick' if args.quick else ''}`; {platform.processor() or platform.machine()}, "
         f"{os.cpu_count()} cores, jax {jax.__version__} on {jax.devices()[0].platform}, OpenCV {cv2.__version__} "
-        f"({cv2.getNumThreads()} threads). Grey frames.",
-        f"jaxtrack: α = {args.alpha:g}, γ = {args.gamma:g}, ε = 0.001, robust smoothness; η = {config.eta}, "
+        f"({cv2.getNumThreads()} threads). Grey frames."),
+        (f"jaxtrack: α = {args.alpha:g}, γ = {args.gamma:g}, ε = 0.001, robust smoothness; η = {config.eta}, "
         f"{config.warps} warps/level, {config.lagged} lagged iterations x {config.sor_iters} SOR sweeps, "
-        f"pre-smoothing σ = {config.presmooth_sigma}, median filter {median_text}, float32. Seconds exclude compilation (one warm-up call per frame size).",
+        f"pre-smoothing σ = {config.presmooth_sigma}, median filter {median_text}, float32. Seconds exclude compilation (one warm-up call per frame size)."),
         "",
         "| sequence | size | jaxtrack EPE | jaxtrack AAE | jaxtrack s | DIS EPE | DIS AAE | DIS s | Farneback EPE | Farneback AAE | Farneback s |",
         "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",

@@ -6,6 +6,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike, DTypeLike
 
 
 class Mesh(eqx.Module):
@@ -32,7 +33,9 @@ class Mesh(eqx.Module):
         return self.vertices.shape[0]
 
 
-def make_mesh(vertices, faces, vertex_part=None, dtype=jnp.float32, name: str = "mesh") -> Mesh:
+def make_mesh(
+    vertices: ArrayLike, faces: ArrayLike, vertex_part: ArrayLike | None = None, dtype: DTypeLike = jnp.float32, name: str = "mesh"
+) -> Mesh:
     """Validated `Mesh` from host arrays.
 
     Raises:
@@ -59,7 +62,7 @@ def make_mesh(vertices, faces, vertex_part=None, dtype=jnp.float32, name: str = 
     )
 
 
-def box_mesh(size=(100.0, 60.0, 40.0), dtype=jnp.float32) -> Mesh:
+def box_mesh(size: tuple[float, float, float] = (100.0, 60.0, 40.0), dtype: DTypeLike = jnp.float32) -> Mesh:
     """An axis-aligned box centred at the origin (12 triangles, outward CCW)."""
     sx, sy, sz = (s / 2 for s in size)
     v = np.array([[x, y, z] for x in (-sx, sx) for y in (-sy, sy) for z in (-sz, sz)])
@@ -68,7 +71,9 @@ def box_mesh(size=(100.0, 60.0, 40.0), dtype=jnp.float32) -> Mesh:
     return make_mesh(v, faces, dtype=dtype, name="box")
 
 
-def torus_mesh(major=80.0, minor=30.0, segments=48, rings=24, dtype=jnp.float32) -> Mesh:
+def torus_mesh(
+    major: float = 80.0, minor: float = 30.0, segments: int = 48, rings: int = 24, dtype: DTypeLike = jnp.float32
+) -> Mesh:
     """A torus around the z axis: self-occluding, for renderer tests."""
     u = np.linspace(0, 2 * np.pi, segments, endpoint=False)
     w = np.linspace(0, 2 * np.pi, rings, endpoint=False)

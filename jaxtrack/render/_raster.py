@@ -21,6 +21,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 
 from .._status import Status, StatusError, first_failure, status_where
 from ..geometry import (
@@ -88,7 +89,7 @@ class RenderOutput(eqx.Module):
     status: jax.Array
 
     @property
-    def silhouette(self):
+    def silhouette(self) -> jax.Array:
         return self.face_id >= 0
 
 
@@ -161,8 +162,8 @@ def _rasterize_class(px_f, inv_z_f, faces_idx, corner, size: int, width: int, he
 def render(
     mesh: Mesh,
     camera: Camera,
-    T_world_root,
-    theta=None,
+    T_world_root: ArrayLike,
+    theta: ArrayLike | None = None,
     model: KinematicModel | None = None,
     plan: RasterPlan | None = None,
     vertex_depth_tolerance: float = 1e-3,
@@ -294,8 +295,8 @@ def _front_facing(px_f):
 def face_extents(
     mesh: Mesh,
     camera: Camera,
-    T_world_root,
-    theta=None,
+    T_world_root: ArrayLike,
+    theta: ArrayLike | None = None,
     model: KinematicModel | None = None,
     cull_backfaces: bool = False,
     per_axis: bool = False,
@@ -316,7 +317,7 @@ def face_extents(
     return sides if per_axis else sides.max(axis=1)
 
 
-def tiles_needed(sides, threshold: int, tile_size: int = TILE_SIZE) -> np.ndarray:
+def tiles_needed(sides: ArrayLike, threshold: int, tile_size: int = TILE_SIZE) -> np.ndarray:
     """Host helper: tiles of side `tile_size` that the faces larger than `threshold` px need.
 
     Args:
@@ -332,13 +333,13 @@ def tiles_needed(sides, threshold: int, tile_size: int = TILE_SIZE) -> np.ndarra
 
 
 def plan_raster(
-    extents,
+    extents: ArrayLike,
     margin: float = 1.3,
     minimum: int = 8,
     patch_sizes: tuple = PATCH_SIZES,
     max_size: int | None = None,
     cull_backfaces: bool = False,
-    tiles=None,
+    tiles: ArrayLike | None = None,
     tile_size: int = TILE_SIZE,
 ) -> RasterPlan:
     """Capacities per class from observed face extents (one or more frames), with a margin.
@@ -431,7 +432,7 @@ class Renderer:
         self.plan = new if self.plan is None else merge_plans(self.plan, new)
         self.compilations += 1
 
-    def __call__(self, T_world_root, theta=None, throw: bool = True) -> RenderOutput:
+    def __call__(self, T_world_root: ArrayLike, theta: ArrayLike | None = None, throw: bool = True) -> RenderOutput:
         """Render at root pose (4, 4) and joint angles (J,) (default zeros).
 
         Raises:
