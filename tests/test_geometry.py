@@ -128,6 +128,10 @@ def test_camera_rig_batches_and_rejects_bad_input():
         make_camera(K, 640, 480, R_cam_world=np.ones(9))
     with pytest.raises(ValueError, match="image size"):
         stack_cameras([make_camera(K, 640, 480), make_camera(K, 320, 240)])
+    with pytest.raises(ValueError, match="cameras\\[1\\] must be a single Camera"):
+        stack_cameras([make_camera(K, 640, 480), K])
+    with pytest.raises(ValueError, match="cameras\\[0\\] must be a single Camera"):
+        stack_cameras([cams])
 
 
 @pytest.mark.parametrize(

@@ -12,7 +12,17 @@ from jaxtrack.cli import main as cli_main
 from jaxtrack.geometry import rotation_error_deg
 from jaxtrack.io import read_sequence
 from jaxtrack.render import Renderer, make_mesh
-from jaxtrack.synth import PRESETS, SynthConfig, render_sequence
+from jaxtrack.synth import (
+    PRESETS,
+    SynthConfig,
+    camera_ring,
+    demo_chain,
+    look_at,
+    perturb_pose,
+    project_model_points,
+    random_pose_scene,
+    render_sequence,
+)
 
 
 def _small(cfg, **kw):
@@ -134,3 +144,37 @@ def test_write_sequence_refuses_a_file_as_root_before_rendering(tmp_path):
     with pytest.raises(ValueError, match="write_sequence: root: .*f exists and is not a folder"):
         write_sequence(_small(SynthConfig(frames=1)), tmp_path / "f", progress=type("P", (), {"update": calls.append})())
     assert calls == []  # nothing was rendered
+
+
+@pytest.mark.parametrize(
+    "call, message",
+    [
+        (lambda: look_at([0.0, 0.0, 0.0]), "look_at: eye .* must differ from target"),
+        (lambda: look_at([1.0, 2.0]), "look_at: eye must hold 3 values"),
+        (lambda: camera_ring(0), "camera_ring: num_cameras must be an integer ≥ 1, got 0"),
+        (lambda: demo_chain(3, branches=2), "demo_chain: two branches need an even num_joints"),
+        (lambda: demo_chain(-1), "demo_chain: num_joints must be an integer ≥ 0"),
+        (lambda: demo_chain(2, branches=3), "demo_chain: branches must be 1 or 2"),
+        (lambda: random_pose_scene(0, num_points=0), "random_pose_scene: num_points must be an integer ≥ 1"),
+        (lambda: random_pose_scene(0, num_points=2, model=demo_chain(3)), "num_points must be ≥ the model's 4 parts"),
+        (lambda: random_pose_scene(0, noise_px=-1.0), "random_pose_scene: noise_px must be a finite number ≥ 0"),
+        (lambda: random_pose_scene(-1), "random_pose_scene: seed must be an integer ≥ 0"),
+        (lambda: perturb_pose(np.random.default_rng(0), np.eye(3), 0.1, 1.0), "perturb_pose: T must be a \\(4, 4\\) matrix"),
+        (lambda: perturb_pose(np.random.default_rng(0), 2 * np.eye(4), 0.1, 1.0), "perturb_pose: T\\[:3, :3\\] is not a rotation"),
+        (lambda: perturb_pose(np.random.default_rng(0), np.eye(4), -0.1, 1.0), "random_rotation: max_angle must be"),
+        (lambda: perturb_pose(np.random.default_rng(0), np.eye(4), 0.1, np.nan), "perturb_pose: max_translation must be"),
+    ],
+)
+def test_pose_scene_builders_name_bad_arguments(call, message):
+    with pytest.raises(ValueError, match=message):
+        call()
+
+
+def test_project_model_points_checks_the_pose_against_the_model():
+    scene = random_pose_scene(0, num_points=10, model=demo_chain(2, dtype=jnp.float64), dtype=np.float64)
+    with pytest.raises(ValueError, match="project_model_points: theta must hold 2 values, got 3"):
+        project_model_points(scene, np.eye(4), [0.1, 0.2, 0.3])
+    with pytest.raises(ValueError, match="project_model_points: T_world_root must have last row"):
+        project_model_points(scene, np.vstack([np.eye(4)[:3], [1.0, 0, 0, 1]]), [0.1, 0.2])
+    moved = project_model_points(scene, scene.T_world_root, scene.theta)
+    np.testing.assert_allclose(moved.pixel, scene.pixel, atol=1e-9)  # same pose, no noise: same pixels

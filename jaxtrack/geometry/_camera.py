@@ -7,10 +7,14 @@ coordinates (BOP's cam_R_w2c, cam_t_w2c). Distortion coefficients follow OpenCV'
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import numpy.typing as npt
+from jax.typing import ArrayLike, DTypeLike
 
 from ._lie import make_transform, se3_inverse, transform_points
 from ._validate import checked_array, checked_image_size, checked_intrinsics, checked_rotation
@@ -39,7 +43,13 @@ class Camera(eqx.Module):
 
 
 def make_camera(
-    K, width: int, height: int, R_cam_world=None, t_cam_world=None, dist=None, dtype=jnp.float32
+    K: npt.ArrayLike,
+    width: int,
+    height: int,
+    R_cam_world: npt.ArrayLike | None = None,
+    t_cam_world: npt.ArrayLike | None = None,
+    dist: npt.ArrayLike | None = None,
+    dtype: DTypeLike = jnp.float32,
 ) -> Camera:
     """Validated `Camera` from numpy-like inputs (world = camera when extrinsics are omitted).
 
@@ -73,18 +83,21 @@ def make_camera(
     )
 
 
-def stack_cameras(cameras) -> Camera:
+def stack_cameras(cameras: Iterable[Camera]) -> Camera:
     """Stack cameras of one image size into a batched `Camera` with leading axis C."""
     cameras = list(cameras)
     if not cameras:
         raise ValueError("stack_cameras needs at least one camera")
+    for i, c in enumerate(cameras):
+        if not isinstance(c, Camera) or c.K.ndim != 2:
+            raise ValueError(f"stack_cameras: cameras[{i}] must be a single Camera (from make_camera), got {type(c).__name__}")
     sizes = {(c.width, c.height) for c in cameras}
     if len(sizes) != 1:
         raise ValueError(f"cameras of a rig must share one image size, got {sorted(sizes)}")
     return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *cameras)
 
 
-def select_camera(cameras: Camera, index) -> Camera:
+def select_camera(cameras: Camera, index: ArrayLike) -> Camera:
     """Camera `index` of a stacked rig (works with a traced index)."""
     return jax.tree_util.tree_map(lambda x: x[index], cameras)
 
@@ -111,7 +124,7 @@ def _distort_normalized(xy, dist):
     return xy * radial + shift
 
 
-def project_points(camera: Camera, p_world):
+def project_points(camera: Camera, p_world: ArrayLike):
     """Project world points of one camera to pixels, distortion applied (as cv2.projectPoints).
 
     Args:
@@ -129,7 +142,7 @@ def project_points(camera: Camera, p_world):
     return normalized_to_pixels(camera, xy), z
 
 
-def normalized_to_pixels(camera: Camera, xy):
+def normalized_to_pixels(camera: Camera, xy: jax.Array):
     """K on normalised image coordinates. (..., 2) -> (..., 2); camera dims broadcast with xy[..., 0]."""
     K = camera.K
     u = K[..., 0, 0] * xy[..., 0] + K[..., 0, 1] * xy[..., 1] + K[..., 0, 2]
@@ -137,7 +150,7 @@ def normalized_to_pixels(camera: Camera, xy):
     return jnp.stack([u, v], axis=-1)
 
 
-def pixels_to_normalized(camera: Camera, px):
+def pixels_to_normalized(camera: Camera, px: jax.Array):
     """K⁻¹ on pixels without removing distortion. (..., 2) -> (..., 2)."""
     K = camera.K
     y = (px[..., 1] - K[..., 1, 2]) / K[..., 1, 1]
@@ -145,7 +158,7 @@ def pixels_to_normalized(camera: Camera, px):
     return jnp.stack([x, y], axis=-1)
 
 
-def undistort_points(camera: Camera, px, iterations: int = 20):
+def undistort_points(camera: Camera, px: jax.Array, iterations: int = 20):
     """Remove lens distortion from observed pixels, returning ideal pinhole pixels.
 
     Fixed-point inversion of the distortion model as in cv2.undistortPoints (which also iterates);
@@ -167,14 +180,14 @@ def undistort_points(camera: Camera, px, iterations: int = 20):
     return normalized_to_pixels(camera, jax.lax.fori_loop(0, iterations, step, xy_d))
 
 
-def backproject_pixels(camera: Camera, px, depth):
+def backproject_pixels(camera: Camera, px: jax.Array, depth: jax.Array):
     """Ideal (undistorted) pixels with camera-frame depth z to world points. px (..., 2), depth (...)."""
     xy = pixels_to_normalized(camera, px)
     p_cam = jnp.concatenate([xy * depth[..., None], depth[..., None]], axis=-1)
     return transform_points(se3_inverse(camera.T_cam_world), p_cam)
 
 
-def pixel_rays_world(camera: Camera, px):
+def pixel_rays_world(camera: Camera, px: jax.Array):
     """Rays through ideal pixels: origin (..., 3) = optical centre and unit direction (..., 3), world frame.
 
     `camera` may be one camera or per-ray cameras whose leading dims match px[..., 0].

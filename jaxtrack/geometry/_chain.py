@@ -20,6 +20,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import numpy.typing as npt
+from jax.typing import DTypeLike
 
 from ._lie import se3_exp
 
@@ -53,7 +55,7 @@ class KinematicModel(eqx.Module):
         return 6 + self.num_joints
 
 
-def rigid_model(dtype=jnp.float32) -> KinematicModel:
+def rigid_model(dtype: DTypeLike = jnp.float32) -> KinematicModel:
     """A rigid object: one part, no joints."""
     return KinematicModel(
         joint_twists=jnp.zeros((0, 6), dtype),
@@ -63,7 +65,7 @@ def rigid_model(dtype=jnp.float32) -> KinematicModel:
     )
 
 
-def revolute_twist(axis, point):
+def revolute_twist(axis: npt.ArrayLike, point: npt.ArrayLike):
     """Zero-pitch twist ξ = (−ω × q, ω) of a revolute joint with axis ω (normalised) through q."""
     axis = np.asarray(axis, np.float64)
     norm = np.linalg.norm(axis)
@@ -80,7 +82,7 @@ def chain_model(
     parents: Sequence[int],
     axes: Sequence[Sequence[float]],
     points: Sequence[Sequence[float]],
-    dtype=jnp.float32,
+    dtype: DTypeLike = jnp.float32,
 ) -> KinematicModel:
     """Build a kinematic tree with one revolute joint per non-root part.
 
@@ -118,7 +120,7 @@ def chain_model(
     )
 
 
-def part_transforms(model: KinematicModel, T_world_root, theta):
+def part_transforms(model: KinematicModel, T_world_root: jax.Array, theta: jax.Array):
     """Forward kinematics of all parts at once (eq. 2).
 
     Args:

@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import functools
 
+import jax
 import jax.numpy as jnp
+from jax.typing import ArrayLike
 
 # Below this θ² the closed forms lose digits to cancellation ((θ − sin θ)/θ³ in float32 keeps only
 # ~4 digits at θ = 0.05), so a Taylor series to θ⁶ takes over; its truncation error at θ² = 1e-2 is
@@ -26,7 +28,7 @@ def _vectorize(signature: str):
 
 
 @_vectorize("(3)->(3,3)")
-def so3_hat(omega):
+def so3_hat(omega: ArrayLike):
     """Skew matrix ω̂ with ω̂ x = ω × x. (..., 3) -> (..., 3, 3)."""
     wx, wy, wz = omega[0], omega[1], omega[2]
     z = jnp.zeros_like(wx)
@@ -36,7 +38,7 @@ def so3_hat(omega):
 
 
 @_vectorize("(3,3)->(3)")
-def so3_vee(omega_hat):
+def so3_vee(omega_hat: ArrayLike):
     """Inverse of `so3_hat` (antisymmetric part). (..., 3, 3) -> (..., 3)."""
     return 0.5 * jnp.stack(
         [
@@ -48,14 +50,14 @@ def so3_vee(omega_hat):
 
 
 @_vectorize("(6)->(4,4)")
-def se3_hat(xi):
+def se3_hat(xi: ArrayLike):
     """4x4 twist matrix ξ̂ = [[ω̂, v], [0, 0]] of ξ = (v, ω) (eq. 1). (..., 6) -> (..., 4, 4)."""
     top = jnp.concatenate([so3_hat(xi[3:]), xi[:3, None]], axis=1)
     return jnp.concatenate([top, jnp.zeros((1, 4), xi.dtype)], axis=0)
 
 
 @_vectorize("(4,4)->(6)")
-def se3_vee(xi_hat):
+def se3_vee(xi_hat: ArrayLike):
     """Inverse of `se3_hat`. (..., 4, 4) -> (..., 6)."""
     return jnp.concatenate([xi_hat[:3, 3], so3_vee(xi_hat[:3, :3])])
 
@@ -77,7 +79,7 @@ def _exp_coefficients(theta_sq):
 
 
 @_vectorize("(3)->(3,3)")
-def so3_exp(omega):
+def so3_exp(omega: ArrayLike):
     """Rodrigues: exp(ω̂) = I + A ω̂ + B ω̂². (..., 3) -> (..., 3, 3)."""
     a, b, _ = _exp_coefficients(jnp.dot(omega, omega))
     w = so3_hat(omega)
@@ -85,7 +87,7 @@ def so3_exp(omega):
 
 
 @_vectorize("(6)->(4,4)")
-def se3_exp(xi):
+def se3_exp(xi: ArrayLike):
     """exp(ξ̂) of a twist ξ = (v, ω) as a 4x4 matrix (eq. 1). (..., 6) -> (..., 4, 4).
 
     R = I + A ω̂ + B ω̂², t = (I + B ω̂ + C ω̂²) v.
@@ -101,7 +103,7 @@ def se3_exp(xi):
 
 
 @_vectorize("(3,3)->(4)")
-def rotation_to_quaternion(rot):
+def rotation_to_quaternion(rot: ArrayLike):
     """Unit quaternion (w, x, y, z) with w ≥ 0 of a rotation matrix (Shepperd's four cases)."""
     m00, m11, m22 = rot[0, 0], rot[1, 1], rot[2, 2]
     trace = m00 + m11 + m22
@@ -124,7 +126,7 @@ def rotation_to_quaternion(rot):
 
 
 @_vectorize("(3,3)->(3)")
-def so3_log(rot):
+def so3_log(rot: ArrayLike):
     """Rotation vector ω (|ω| = θ ∈ [0, π]) with exp(ω̂) = R. (..., 3, 3) -> (..., 3).
 
     Through the unit quaternion: θ = 2 atan2(|q_v|, q_w), finite at θ = 0 and at θ = π.
@@ -147,7 +149,7 @@ def so3_log(rot):
 
 
 @_vectorize("(4,4)->(6)")
-def se3_log(transform):
+def se3_log(transform: ArrayLike):
     """Twist ξ = (v, ω) with exp(ξ̂) = T, θ ∈ [0, π]. (..., 4, 4) -> (..., 6).
 
     v = V⁻¹ t with V⁻¹ = I − ½ ω̂ + (1 − A/(2B))/θ² ω̂².
@@ -169,7 +171,7 @@ def se3_log(transform):
     return jnp.concatenate([v_inv @ trans, omega])
 
 
-def make_transform(rot, trans):
+def make_transform(rot: ArrayLike, trans: ArrayLike):
     """Homogeneous matrix from R (..., 3, 3) and t (..., 3) -> (..., 4, 4)."""
     rot = jnp.asarray(rot)
     trans = jnp.asarray(trans)
@@ -181,20 +183,20 @@ def make_transform(rot, trans):
     return jnp.concatenate([top, bottom], axis=-2)
 
 
-def se3_inverse(transform):
+def se3_inverse(transform: jax.Array):
     """T⁻¹ = [[Rᵀ, −Rᵀ t], [0, 1]] without a general matrix inverse. (..., 4, 4)."""
     rot_t = jnp.swapaxes(transform[..., :3, :3], -1, -2)
     trans = transform[..., :3, 3]
     return make_transform(rot_t, -jnp.einsum("...ij,...j->...i", rot_t, trans))
 
 
-def se3_compose(T_c_b, T_b_a):
+def se3_compose(T_c_b: jax.Array, T_b_a: jax.Array):
     """T_c_a = T_c_b · T_b_a. (..., 4, 4)."""
     return T_c_b @ T_b_a
 
 
 @_vectorize("(4,4)->(6,6)")
-def se3_adjoint(transform):
+def se3_adjoint(transform: ArrayLike):
     """Adjoint Ad_T acting on twists (v, ω): T exp(ξ̂) T⁻¹ = exp((Ad_T ξ)^). (..., 4, 4) -> (..., 6, 6)."""
     rot, trans = transform[:3, :3], transform[:3, 3]
     top = jnp.concatenate([rot, so3_hat(trans) @ rot], axis=1)
@@ -202,7 +204,7 @@ def se3_adjoint(transform):
     return jnp.concatenate([top, bottom], axis=0)
 
 
-def transform_points(transform, points):
+def transform_points(transform: jax.Array, points: jax.Array):
     """Apply T (..., 4, 4) to points (..., N, 3) or (..., 3); batch dims broadcast."""
     rot, trans = transform[..., :3, :3], transform[..., :3, 3]
     if points.ndim == transform.ndim - 1:  # one point per transform
@@ -210,7 +212,7 @@ def transform_points(transform, points):
     return jnp.einsum("...ij,...nj->...ni", rot, points) + trans[..., None, :]
 
 
-def transform_point_columns(transform, x, y, z):
+def transform_point_columns(transform: jax.Array, x: ArrayLike, y: ArrayLike, z: ArrayLike):
     """T applied to points given as three coordinate arrays: returns (x', y', z').
 
     `transform` is (4, 4) or (..., 4, 4) broadcasting against x, y, z. Keeping coordinates as separate

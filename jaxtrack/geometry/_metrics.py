@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import jax.numpy as jnp
+from jax.typing import ArrayLike
 
 
-def rotation_error_deg(R_a, R_b):
+def rotation_error_deg(R_a: ArrayLike, R_b: ArrayLike):
     """Angle (degrees) of the relative rotation R_a R_bᵀ, for (..., 3, 3) rotations (broadcast).
 
     θ = atan2(|vee(R − Rᵀ)| / 2, (tr R − 1) / 2) with R = R_a R_bᵀ: unlike arccos of the trace alone it
@@ -18,6 +19,6 @@ def rotation_error_deg(R_a, R_b):
     return jnp.degrees(jnp.arctan2(sin, cos))
 
 
-def translation_error(t_a, t_b):
+def translation_error(t_a: ArrayLike, t_b: ArrayLike):
     """Euclidean distance |t_a − t_b| over the last axis (same units as the inputs, mm here)."""
     return jnp.linalg.norm(jnp.asarray(t_a) - jnp.asarray(t_b), axis=-1)

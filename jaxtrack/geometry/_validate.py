@@ -8,13 +8,14 @@ learns which input is wrong, not just that a shape somewhere did not match.
 from __future__ import annotations
 
 import numpy as np
+import numpy.typing as npt
 
 # |RRᵀ − I| allowed for a stored rotation: BOP files and hand-written JSON keep ~6-8 digits, and a
 # matrix this close to SO(3) changes projections by < 1e-4 relative; anything further is not a rotation.
 ROTATION_ATOL = 1e-4
 
 
-def checked_array(value, name: str, size: int | None = None) -> np.ndarray:
+def checked_array(value: npt.ArrayLike, name: str, size: int | None = None) -> np.ndarray:
     """`value` as a finite float64 array (flattened to `size` values when given)."""
     try:
         arr = np.asarray(value, np.float64)
@@ -29,7 +30,7 @@ def checked_array(value, name: str, size: int | None = None) -> np.ndarray:
     return arr
 
 
-def checked_intrinsics(K, name: str = "K") -> np.ndarray:
+def checked_intrinsics(K: npt.ArrayLike, name: str = "K") -> np.ndarray:
     """(3, 3) pinhole intrinsics [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0 (so K is invertible).
 
     A 9-value list (BOP's cam_K) is reshaped row-major.
@@ -47,7 +48,7 @@ def checked_intrinsics(K, name: str = "K") -> np.ndarray:
     return K
 
 
-def checked_rotation(R, name: str = "R") -> np.ndarray:
+def checked_rotation(R: npt.ArrayLike, name: str = "R") -> np.ndarray:
     """(3, 3) rotation matrix: 9 finite values with RRᵀ = I (to `ROTATION_ATOL`) and det R = +1."""
     R = checked_array(R, name, size=9).reshape(3, 3)
     defect = np.abs(R @ R.T - np.eye(3)).max()
@@ -57,7 +58,7 @@ def checked_rotation(R, name: str = "R") -> np.ndarray:
     return R
 
 
-def checked_image_size(width, height, name: str = "image size") -> tuple[int, int]:
+def checked_image_size(width: float, height: float, name: str = "image size") -> tuple[int, int]:
     """(width, height) as positive Python ints; floats must be whole numbers, bools are refused."""
     out = []
     for label, v in (("width", width), ("height", height)):

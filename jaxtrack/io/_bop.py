@@ -14,8 +14,10 @@ import dataclasses
 import json
 import os
 import pathlib
+from collections.abc import Iterable
 
 import numpy as np
+import numpy.typing as npt
 
 from ..geometry import checked_array, checked_intrinsics, checked_rotation
 from ._images import image_size, prepare_output_file, prepare_output_folder, read_image, write_image
@@ -282,7 +284,12 @@ def read_sequence(root: str | os.PathLike) -> Sequence:
 
 
 def write_camera_view(
-    folder: str | os.PathLike, images, K, T_cam_obj: dict, T_cam_world=None, gray: bool = False
+    folder: str | os.PathLike,
+    images: npt.ArrayLike,
+    K: npt.ArrayLike,
+    T_cam_obj: dict,
+    T_cam_world: npt.ArrayLike | None = None,
+    gray: bool = False,
 ) -> pathlib.Path:
     """Write one camera of a sequence in the BOP layout (frames 000000.png, ... and the two JSON files).
 
@@ -336,7 +343,7 @@ def write_camera_view(
 RESULT_HEADER = "scene_id,im_id,obj_id,score,R,t,time"
 
 
-def write_bop_results(path: str | os.PathLike, rows) -> pathlib.Path:
+def write_bop_results(path: str | os.PathLike, rows: Iterable[tuple]) -> pathlib.Path:
     """Write the BOP results CSV (parent folders created).
 
     Args:

@@ -10,6 +10,7 @@ import os
 import pathlib
 
 import numpy as np
+import numpy.typing as npt
 
 from ._images import prepare_output_file
 
@@ -40,7 +41,7 @@ def read_flo(path: str | os.PathLike) -> np.ndarray:
     return np.frombuffer(data[12:], "<f4").reshape(height, width, 2).copy()
 
 
-def write_flo(path: str | os.PathLike, flow) -> pathlib.Path:
+def write_flo(path: str | os.PathLike, flow: npt.ArrayLike) -> pathlib.Path:
     """Write (H, W, 2) flow as a .flo file (missing parent folders are created).
 
     Raises:
@@ -58,13 +59,13 @@ def write_flo(path: str | os.PathLike, flow) -> pathlib.Path:
     return path
 
 
-def known_flow_mask(flow) -> np.ndarray:
+def known_flow_mask(flow: npt.ArrayLike) -> np.ndarray:
     """(H, W) True where the ground truth is known (|u|, |v| ≤ 1e9 and finite)."""
     flow = np.asarray(flow)
     return np.all(np.isfinite(flow) & (np.abs(flow) <= UNKNOWN_FLOW), axis=-1)
 
 
-def flow_errors(flow, gt, mask=None) -> dict:
+def flow_errors(flow: npt.ArrayLike, gt: npt.ArrayLike, mask: npt.ArrayLike | None = None) -> dict:
     """Mean endpoint error (px) and mean angular error (deg, Barron et al. with the third component 1)."""
     flow, gt = np.asarray(flow, np.float64), np.asarray(gt, np.float64)
     if gt.ndim != 3 or gt.shape[2] != 2:
@@ -96,7 +97,7 @@ def _colour_wheel() -> np.ndarray:
     return np.asarray(cols, np.float64)
 
 
-def flow_to_colour(flow, max_flow: float | None = None) -> np.ndarray:
+def flow_to_colour(flow: npt.ArrayLike, max_flow: float | None = None) -> np.ndarray:
     """(H, W, 3) uint8 RGB colour-wheel image of a flow field (hue = direction, saturation = magnitude).
 
     Unknown flow is drawn black. `max_flow` sets the saturation scale (default: the largest magnitude).

@@ -11,12 +11,13 @@ import os
 import pathlib
 
 import numpy as np
+import numpy.typing as npt
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".ppm", ".pgm")
 _MODES = ("rgb", "grey", "native")
 
 
-def read_image(path: str | os.PathLike, mode: str = "rgb", dtype=None) -> np.ndarray:
+def read_image(path: str | os.PathLike, mode: str = "rgb", dtype: npt.DTypeLike | None = None) -> np.ndarray:
     """An image file as an array.
 
     Args:
@@ -119,7 +120,7 @@ def _make_folder(folder: pathlib.Path, what: str) -> None:
         raise ValueError(f"{what}: cannot create folder {folder} ({e.strerror})") from e
 
 
-def write_image(path: str | os.PathLike, image, what: str = "image") -> pathlib.Path:
+def write_image(path: str | os.PathLike, image: npt.ArrayLike, what: str = "image") -> pathlib.Path:
     """Write an (H, W) grey or (H, W, 3) RGB uint8/uint16 image; the format follows the extension.
 
     Missing parent folders are created (see `prepare_output_file`).

@@ -6,6 +6,7 @@ import os
 import pathlib
 
 import numpy as np
+import numpy.typing as npt
 import trimesh
 
 from ..render import Mesh, make_mesh
@@ -45,7 +46,7 @@ def load_trimesh(path: str | os.PathLike, scale: float = 1.0) -> trimesh.Trimesh
     return loaded
 
 
-def load_mesh(path: str | os.PathLike, scale: float = 1.0, dtype=np.float32) -> Mesh:
+def load_mesh(path: str | os.PathLike, scale: float = 1.0, dtype: npt.DTypeLike = np.float32) -> Mesh:
     """A rigid `Mesh` (mm) from a file; `scale` converts its units to mm (e.g. 1000 for metres)."""
     tm = load_trimesh(path, scale)
     return make_mesh(np.asarray(tm.vertices), np.asarray(tm.faces), dtype=dtype, name=str(path))

@@ -10,11 +10,14 @@ import dataclasses
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
+import numpy.typing as npt
 
 from ..geometry import (
     Camera,
     KinematicModel,
     chain_model,
+    checked_array,
+    checked_rotation,
     make_camera,
     part_transforms,
     project_points,
@@ -49,6 +52,8 @@ class PoseScene:
 
 def random_rotation(rng: np.random.Generator, max_angle: float | None = None) -> np.ndarray:
     """Uniform random rotation, or one of angle ≤ max_angle (rad) about a uniform axis."""
+    if max_angle is not None:
+        _check_number("random_rotation: max_angle", max_angle, low=0.0)
     if max_angle is None:
         q = rng.normal(size=4)
         q /= np.linalg.norm(q)
@@ -67,10 +72,16 @@ def random_rotation(rng: np.random.Generator, max_angle: float | None = None) ->
     return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
 
 
-def look_at(eye, target=(0.0, 0.0, 0.0), up=(0.0, -1.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
+def look_at(
+    eye: npt.ArrayLike,
+    target: npt.ArrayLike = (0.0, 0.0, 0.0),
+    up: npt.ArrayLike = (0.0, -1.0, 0.0),
+) -> tuple[np.ndarray, np.ndarray]:
     """R_cam_world, t_cam_world of a camera at `eye` looking at `target` (OpenCV axes: z forward, y down)."""
-    eye, target, up = (np.asarray(a, np.float64) for a in (eye, target, up))
+    eye, target, up = (checked_array(a, f"look_at: {n}", size=3) for a, n in ((eye, "eye"), (target, "target"), (up, "up")))
     z = target - eye
+    if np.linalg.norm(z) == 0 or np.linalg.norm(up) == 0:
+        raise ValueError(f"look_at: eye {eye.tolist()} must differ from target and up must be non-zero")
     z /= np.linalg.norm(z)
     x = np.cross(up, z)
     if np.linalg.norm(x) < 1e-9:
@@ -81,9 +92,18 @@ def look_at(eye, target=(0.0, 0.0, 0.0), up=(0.0, -1.0, 0.0)) -> tuple[np.ndarra
     return R, -R @ eye
 
 
-def camera_ring(num_cameras: int, distance: float = 1000.0, width: int = 640, height: int = 480, focal: float = 800.0, dtype=np.float32) -> Camera:
+def camera_ring(
+    num_cameras: int,
+    distance: float = 1000.0,
+    width: int = 640,
+    height: int = 480,
+    focal: float = 800.0,
+    dtype: npt.DTypeLike = np.float32,
+) -> Camera:
     """C cameras on a horizontal circle around the origin, all looking at it (world frame = first camera's view axis)."""
-    K = np.array([[focal, 0, (width - 1) / 2], [0, focal, (height - 1) / 2], [0, 0, 1]])
+    _check_count("camera_ring: num_cameras", num_cameras, 1)
+    _check_number("camera_ring: distance", distance, low=0.0, strict=True)
+    K = np.array([[focal, 0, (width - 1) / 2], [0, focal, (height - 1) / 2], [0, 0, 1]])  # make_camera checks it
     cams = []
     for c in range(num_cameras):
         angle = 2 * np.pi * c / max(num_cameras, 1)
@@ -93,15 +113,25 @@ def camera_ring(num_cameras: int, distance: float = 1000.0, width: int = 640, he
     return stack_cameras(cams)
 
 
-def demo_chain(num_joints: int = 3, branches: int = 1, link_length: float = 120.0, dtype=np.float32) -> KinematicModel:
-    """An arm of `num_joints` links along +x (branches=1) or a torso with two arms (branches=2)."""
+def demo_chain(
+    num_joints: int = 3,
+    branches: int = 1,
+    link_length: float = 120.0,
+    dtype: npt.DTypeLike = np.float32,
+) -> KinematicModel:
+    """An arm of `num_joints` links along +x (branches=1) or a torso with two arms of num_joints/2 links
+    each (branches=2, num_joints even)."""
+    _check_count("demo_chain: num_joints", num_joints, 0)
+    _check_number("demo_chain: link_length", link_length, low=0.0, strict=True)
+    if branches == 2 and (num_joints < 2 or num_joints % 2):
+        raise ValueError(f"demo_chain: two branches need an even num_joints ≥ 2 (half per arm), got {num_joints}")
     if branches == 1:
         parents = [-1] + list(range(num_joints))
         axes = [(0.0, 0.0, 1.0) if j % 2 == 0 else (0.0, 1.0, 0.0) for j in range(num_joints)]
         points = [(link_length * (j + 0.5), 0.0, 0.0) for j in range(num_joints)]
         return chain_model(parents, axes, points, dtype=dtype)
     if branches != 2:
-        raise ValueError("demo_chain supports 1 or 2 branches")
+        raise ValueError(f"demo_chain: branches must be 1 or 2, got {branches!r}")
     per_arm = max(num_joints // 2, 1)
     parents, axes, points = [-1], [], []
     for side in (1.0, -1.0):
@@ -140,15 +170,22 @@ def random_pose_scene(
     model: KinematicModel | None = None,
     extent: float = 100.0,
     max_joint_angle: float = 0.6,
-    dtype=np.float64,
+    dtype: npt.DTypeLike = np.float64,
 ) -> PoseScene:
     """A random pose of `model` (rigid by default) seen by a ring of cameras, with pixel noise.
 
     Points that project outside the image or behind a camera are still kept (they constrain the
     pose as lines do); each point is observed by one camera, chosen at random.
     """
+    _check_count("random_pose_scene: seed", seed, 0)
+    _check_count("random_pose_scene: num_points", num_points, 1)
+    _check_number("random_pose_scene: noise_px", noise_px, low=0.0)
+    _check_number("random_pose_scene: extent", extent, low=0.0, strict=True)
+    _check_number("random_pose_scene: max_joint_angle", max_joint_angle, low=0.0)
     rng = np.random.default_rng(seed)
     model = rigid_model(dtype) if model is None else model
+    if num_points < model.num_parts:
+        raise ValueError(f"random_pose_scene: num_points must be ≥ the model's {model.num_parts} parts (one point each), got {num_points}")
     cameras = camera_ring(num_cameras, dtype=dtype)
     R = random_rotation(rng)
     t = rng.uniform([-50, -50, -50], [50, 50, 50])
@@ -184,20 +221,52 @@ def _observe(cameras, model, T, theta, p_model, part, cam_idx, noise_px, rng):
     return np.asarray(pixel, np.float64) + rng.normal(scale=noise_px, size=(len(p_model), 2))
 
 
-def project_model_points(scene: PoseScene, T_world_root, theta, noise_px: float = 0.0, seed: int = 0) -> PoseScene:
+def project_model_points(
+    scene: PoseScene,
+    T_world_root: npt.ArrayLike,
+    theta: npt.ArrayLike,
+    noise_px: float = 0.0,
+    seed: int = 0,
+) -> PoseScene:
     """The same model points and cameras as `scene`, observed at a new pose (T_world_root, Θ)."""
+    _check_count("project_model_points: seed", seed, 0)
+    _check_number("project_model_points: noise_px", noise_px, low=0.0)
     rng = np.random.default_rng(seed)
-    T = np.asarray(T_world_root, np.float64)
-    theta = np.asarray(theta, np.float64)
+    T = _checked_pose(T_world_root, "project_model_points: T_world_root")
+    theta = checked_array(theta, "project_model_points: theta", size=scene.model.num_joints)
     pixel = _observe(scene.cameras, scene.model, T, theta, scene.p_model, scene.part, scene.camera_index, noise_px, rng)
     return dataclasses.replace(scene, pixel=pixel, T_world_root=T, theta=theta)
 
 
 def perturb_pose(rng: np.random.Generator, T: np.ndarray, max_angle: float, max_translation: float) -> np.ndarray:
     """T with a random rotation of ≤ max_angle (rad) and translation of ≤ max_translation (mm) applied."""
+    T = _checked_pose(T, "perturb_pose: T")
+    _check_number("perturb_pose: max_translation", max_translation, low=0.0)
     R = random_rotation(rng, max_angle)
     direction = rng.normal(size=3)
     out = np.array(T, np.float64)
     out[:3, :3] = R @ out[:3, :3]  # rotate about the object's own position, then shift it
     out[:3, 3] += direction / np.linalg.norm(direction) * rng.uniform(0, max_translation)
     return out
+
+
+def _check_number(name: str, value, low: float, strict: bool = False) -> None:
+    ok = isinstance(value, int | float | np.integer | np.floating) and not isinstance(value, bool)
+    if not ok or not np.isfinite(value) or (value <= low if strict else value < low):
+        raise ValueError(f"{name} must be a finite number {'>' if strict else '≥'} {low:g}, got {value!r}")
+
+
+def _check_count(name: str, value, low: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < low:
+        raise ValueError(f"{name} must be an integer ≥ {low}, got {value!r}")
+
+
+def _checked_pose(T, name: str) -> np.ndarray:
+    """A (4, 4) rigid transform: finite, rotation block in SO(3), last row (0, 0, 0, 1)."""
+    T = checked_array(T, name)
+    if T.shape != (4, 4):
+        raise ValueError(f"{name} must be a (4, 4) matrix, got shape {T.shape}")
+    checked_rotation(T[:3, :3], f"{name}[:3, :3]")
+    if not np.allclose(T[3], [0, 0, 0, 1]):
+        raise ValueError(f"{name} must have last row (0, 0, 0, 1), got {T[3].tolist()}")
+    return T

@@ -13,6 +13,7 @@ import dataclasses
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 import trimesh
 from trimesh.ray.ray_pyembree import RayMeshIntersector
 
@@ -26,7 +27,12 @@ class Appearance:
     colour: tuple = (200.0, 60.0, 40.0)
 
 
-def mesh_appearance(tm: trimesh.Trimesh, kind: str, photo: np.ndarray | None = None, colour=(200.0, 60.0, 40.0)) -> Appearance:
+def mesh_appearance(
+    tm: trimesh.Trimesh,
+    kind: str,
+    photo: np.ndarray | None = None,
+    colour: npt.ArrayLike = (200.0, 60.0, 40.0),
+) -> Appearance:
     """An `Appearance` for a mesh; 'texture' needs UVs and an image on the mesh."""
     if kind == "texture":
         uv = getattr(tm.visual, "uv", None)
@@ -68,7 +74,7 @@ class RayCaster:
         lo, hi = tm.bounds
         self._lo, self._span = lo, np.maximum(hi - lo, 1e-9)
 
-    def cast(self, K, T_cam_obj, width, height):
+    def cast(self, K: np.ndarray, T_cam_obj: np.ndarray, width: int, height: int):
         """Face id (H, W) (−1 = miss), depth (H, W) (inf = miss) and model-frame hit points."""
         v, u = np.mgrid[0:height, 0:width]
         d_cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones(u.shape)], -1).reshape(-1, 3)
@@ -85,7 +91,14 @@ class RayCaster:
         points[ray] = loc
         return face.reshape(height, width), depth.reshape(height, width), points.reshape(height, width, 3)
 
-    def shade(self, face, points, T_cam_obj, light_cam=(0.3, -0.5, -1.0), ambient=0.45):
+    def shade(
+        self,
+        face: np.ndarray,
+        points: np.ndarray,
+        T_cam_obj: npt.ArrayLike,
+        light_cam: npt.ArrayLike = (0.3, -0.5, -1.0),
+        ambient: float = 0.45,
+    ):
         """Colour (H, W, 3) of hit pixels (zeros elsewhere)."""
         hit = face >= 0
         f = face[hit]
@@ -109,7 +122,16 @@ class RayCaster:
         return out
 
 
-def background_plane(image: np.ndarray | None, colour, K, T_cam_world, width, height, depth_world=2500.0, size=4000.0):
+def background_plane(
+    image: np.ndarray | None,
+    colour: npt.ArrayLike,
+    K: npt.ArrayLike,
+    T_cam_world: npt.ArrayLike,
+    width: int,
+    height: int,
+    depth_world: float = 2500.0,
+    size: float = 4000.0,
+):
     """A textured plane z_world = depth_world (size x size mm) seen by the camera, (H, W, 3)."""
     if image is None:
         return np.broadcast_to(np.asarray(colour, np.float32), (height, width, 3)).copy()

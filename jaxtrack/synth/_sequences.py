@@ -14,6 +14,7 @@ import dataclasses
 import json
 import os
 import pathlib
+from typing import Protocol
 
 import cv2
 import numpy as np
@@ -31,6 +32,12 @@ NAMED_OBJECTS = {
     "milk_truck": SHARED_MESHES / "CesiumMilkTruck.glb",
 }
 PHOTOS = ("coffee", "astronaut", "rocket", "chelsea", "brick", "gravel", "camera", "grass")
+
+
+class Progress(Protocol):
+    """Anything with tqdm's `update(n)` (told once per rendered frame and camera)."""
+
+    def update(self, n: int = 1) -> object: ...
 
 
 @dataclasses.dataclass
@@ -235,7 +242,7 @@ def _occluder_masks(cfg, rng, n):
     return masks, colours
 
 
-def render_sequence(cfg: SynthConfig, progress=None):
+def render_sequence(cfg: SynthConfig, progress: Progress | None = None):
     """Render all frames. Returns dict with images per camera (C, N, H, W, 3) uint8, T_cam_obj
     (C, N, 4, 4), T_cam_world (C, N, 4, 4), K, object masks (C, N, H, W) and occluder masks (C, N, H, W)."""
     if not isinstance(cfg, SynthConfig):
@@ -289,7 +296,7 @@ def render_sequence(cfg: SynthConfig, progress=None):
     return out
 
 
-def write_sequence(cfg: SynthConfig, root: str | os.PathLike, progress=None) -> pathlib.Path:
+def write_sequence(cfg: SynthConfig, root: str | os.PathLike, progress: Progress | None = None) -> pathlib.Path:
     """Render `cfg` and write it in the BOP layout under `root` (plus occluder masks and the config).
 
     Raises:
