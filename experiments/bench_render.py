@@ -4,6 +4,8 @@ meshes of ~1k / 5k / 20k faces, compile time, and compilations over a 200-frame 
 Meshes: icospheres subdivided to the face count (closed, like tracked objects) and the Utah teapot
 from ../shared/data/meshes when present. The sequence turns the object 360° about a tilted axis while
 it moves 60 mm; the raster plan is made from frame 0 and re-planned on the host only on overflow.
+A last row renders a box filling most of a 1280x720 frame from 350 mm: its faces are larger than the
+largest patch class (724 px) and go through the tile pool.
 
     python experiments/bench_render.py [--quick]
 """
@@ -41,6 +43,11 @@ def meshes():
     return out
 
 
+def _box(sx, sy, sz):
+    s = trimesh.creation.box((sx, sy, sz))
+    return s.vertices, s.faces
+
+
 def trajectory(frames):
     axis = np.array([0.3, 1.0, 0.2]) / np.linalg.norm([0.3, 1.0, 0.2])
     return [
@@ -52,8 +59,12 @@ def trajectory(frames):
 def run(frames, repeats):
     R, t = look_at([0.0, -150.0, -450.0])
     cam = jt.make_camera([[600, 0, 319.5], [0, 600, 239.5], [0, 0, 1]], 640, 480, R, t)
+    R_hd, t_hd = look_at([60.0, -40.0, -350.0])
+    cam_hd = jt.make_camera([[700, 0, 639.5], [0, 700, 359.5], [0, 0, 1]], 1280, 720, R_hd, t_hd)
+    cases = [(label, mesh, cam) for label, mesh in meshes()]
+    cases.append(("box close-up, 1280x720", make_mesh(*_box(400.0, 300.0, 200.0)), cam_hd))
     rows = []
-    for label, mesh in meshes():
+    for label, mesh, cam in cases:
         poses = trajectory(frames)
         renderer = Renderer(mesh, cam, cull_backfaces=True)  # all benchmark meshes are closed
         t0 = time.perf_counter()
@@ -81,14 +92,16 @@ def to_markdown(rows, frames, command):
         "# Renderer benchmark",
         "",
         f"Command: `{command}`  ",
-        f"Machine: {platform.machine()}, JAX {jax.__version__} on {jax.devices()[0].platform}, 640x480, float32, "
-        "buffers: depth, face id, model points, part id, vertex visibility; back faces culled (closed meshes).",
+        (f"Machine: {platform.machine()}, JAX {jax.__version__} on {jax.devices()[0].platform}, 640x480 unless noted, float32, "
+        "buffers: depth, face id, model points, part id, vertex visibility; back faces culled (closed meshes)."),
         "",
         f"| mesh | faces | ms / render (same pose) | ms / render (median over {frames} frames) | first call incl. compile (s) | compilations over {frames} frames | final plan (patch: capacity) |",
         "|---|---:|---:|---:|---:|---:|---|",
     ]
     for label, faces, ms, med, comp, ncomp, plan in rows:
         plan_s = ", ".join(f"{s}:{c}" for s, c in zip(plan.patch_sizes, plan.capacities))
+        if plan.tile_capacity:
+            plan_s += f", tiles of {plan.tile_size}: {plan.tile_capacity}"
         lines.append(f"| {label} | {faces} | {ms:.2f} | {med:.2f} | {comp:.2f} | {ncomp} | {plan_s} |")
     return "\n".join(lines) + "\n"
 

@@ -252,7 +252,8 @@ def _bad_inputs():
     return [
         ("nan-img1", {"img1": nan_img}, r"img1 has 1 non-finite pixel\(s\), first at \(y, x\) = \(3, 7\)"),
         ("nan-img2", {"img2": nan_img}, r"img2 has 1 non-finite pixel\(s\), first at \(y, x\) = \(3, 7\)"),
-        ("inf-weight", {"data_weight": weight}, r"data_weight has 1 non-finite value\(s\), first at \(y, x\) = \(5, 2\)"),
+        ("inf-weight", {"data_weight": weight},
+         r"data_weight has 1 non-finite value\(s\), first at \(y, x\) = \(5, 2\)"),
         ("nan-start", {"init_flow": start}, r"init_flow has 1 non-finite value\(s\), first at \(y, x\) = \(9, 11\)"),
         ("alpha<0", {"params": params(alpha=-1.0)}, "params.alpha must be finite and ≥ 0"),
         ("gamma<0", {"params": params(gamma=-0.5)}, "params.gamma must be finite and ≥ 0"),

@@ -165,7 +165,8 @@ def test_faces_larger_than_every_patch_class_are_tiled():
     assert np.asarray(out.silhouette).mean() > 0.6
     _assert_matches_ray_caster(out, mesh, R, t, 1280, 720, K_HD)
     # A plan without enough tiles reports the overflow instead of dropping faces silently.
-    short = jt.render.RasterPlan(renderer.plan.patch_sizes, renderer.plan.capacities, cull_backfaces=True, tile_capacity=1)
+    plan = renderer.plan
+    short = jt.render.RasterPlan(plan.patch_sizes, plan.capacities, cull_backfaces=True, tile_capacity=1)
     out_short = jax.jit(lambda T: render(mesh, cam, T, plan=short))(jnp.eye(4))
     assert bool(out_short.overflow) and int(out_short.status) == jt.Status.RENDER_OVERFLOW
 
@@ -176,7 +177,8 @@ def test_renderers_of_one_mesh_share_a_compilation():
     mesh = box_mesh((90, 50, 30))
     cam, _, _ = _camera([40, -120, -380])
     before = eqx.debug.get_num_traces(_raster._render_body)
-    first, second = jt.render.Renderer(mesh, cam, cull_backfaces=True), jt.render.Renderer(mesh, cam, cull_backfaces=True)
+    first = jt.render.Renderer(mesh, cam, cull_backfaces=True)
+    second = jt.render.Renderer(mesh, cam, cull_backfaces=True)
     a = first(jnp.eye(4))
     b = second(jt.se3_exp(jnp.array([2.0, 0, 0, 0, 0.01, 0])))  # same plan, another pose
     assert first.plan == second.plan

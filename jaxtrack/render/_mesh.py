@@ -34,7 +34,11 @@ class Mesh(eqx.Module):
 
 
 def make_mesh(
-    vertices: ArrayLike, faces: ArrayLike, vertex_part: ArrayLike | None = None, dtype: DTypeLike = jnp.float32, name: str = "mesh"
+    vertices: ArrayLike,
+    faces: ArrayLike,
+    vertex_part: ArrayLike | None = None,
+    dtype: DTypeLike = jnp.float32,
+    name: str = "mesh",
 ) -> Mesh:
     """Validated `Mesh` from host arrays.
 

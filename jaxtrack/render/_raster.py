@@ -255,7 +255,8 @@ def render(
     vertex_visible = in_img & (p_cam[:, 2] <= d_at * (1 + vertex_depth_tolerance) + 1e-3)
     pose_ok = jnp.all(jnp.isfinite(T_world_root)) & jnp.all(jnp.isfinite(theta))
     status = first_failure(
-        status_where(pose_ok, Status.OK, Status.INVALID_INPUT), status_where(overflow, Status.RENDER_OVERFLOW, Status.OK)
+        status_where(pose_ok, Status.OK, Status.INVALID_INPUT),
+        status_where(overflow, Status.RENDER_OVERFLOW, Status.OK),
     )
     return RenderOutput(
         depth, face_id, p_model, part_id, vertex_visible, overflow, near_clipped.astype(jnp.int32), status
@@ -423,7 +424,9 @@ class Renderer:
         self.compilations = 0
 
     def _replan(self, T_world_root, theta):
-        sides = face_extents(self.mesh, self.camera, T_world_root, theta, self.model, self.cull_backfaces, per_axis=True)
+        sides = face_extents(
+            self.mesh, self.camera, T_world_root, theta, self.model, self.cull_backfaces, per_axis=True
+        )
         tiles = tiles_needed(sides, PATCH_SIZES[-1])
         # Each re-plan widens the margin (1.3, 1.95, 2.9, ...): a drifting object settles after a
         # few compilations instead of re-planning every few frames.

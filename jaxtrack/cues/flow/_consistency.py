@@ -15,7 +15,9 @@ from jax.typing import ArrayLike
 from ...image import warp_bilinear
 
 
-def forward_backward_consistency(flow_fw: jax.Array, flow_bw: jax.Array, a1: ArrayLike = 0.01, a2: ArrayLike = 0.5) -> jax.Array:
+def forward_backward_consistency(
+    flow_fw: jax.Array, flow_bw: jax.Array, a1: ArrayLike = 0.01, a2: ArrayLike = 0.5
+) -> jax.Array:
     """Consistency mask (H, W) bool of a forward flow (H, W, 2) against the backward flow (H, W, 2).
 
     Args:

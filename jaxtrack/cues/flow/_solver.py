@@ -478,7 +478,8 @@ def check_flow_inputs(
 
 def check_flow_params(params: FlowEnergyParams, where: str = "compute_flow") -> None:
     """The API edge: raise ValueError unless α ≥ 0, γ ≥ 0 and ε > 0 (all finite), when concrete."""
-    for name, value, strict in (("alpha", params.alpha, False), ("gamma", params.gamma, False), ("epsilon", params.epsilon, True)):
+    domains = (("alpha", params.alpha, False), ("gamma", params.gamma, False), ("epsilon", params.epsilon, True))
+    for name, value, strict in domains:
         if not _is_concrete(value):
             continue
         v = np.asarray(value, np.float64)
@@ -697,7 +698,9 @@ def refine_flow(
     check_flow_inputs(img1, img2, data_weight, region, flow, where="refine_flow")
     check_flow_params(params, where="refine_flow")
     r, om = weight_and_region(jnp.shape(img1)[:2], data_weight, region, dtype)
-    out, status = _refine_jit(jnp.asarray(flow, dtype), jnp.asarray(img1), jnp.asarray(img2), params, config, r, om, dtype)
+    out, status = _refine_jit(
+        jnp.asarray(flow, dtype), jnp.asarray(img1), jnp.asarray(img2), params, config, r, om, dtype
+    )
     if throw and isinstance(status, jax.core.Tracer):  # under an outer jit: a runtime error of the program
         return eqx.error_if(out, ~is_usable(status), "refine_flow: unusable status (see jaxtrack.Status)")
     check_status(status, throw, "refine_flow")
