@@ -156,17 +156,21 @@ def test_faces_larger_than_every_patch_class_are_tiled():
     mesh = box_mesh((400, 300, 200))
     R, t = look_at([60, -40, -350])
     cam = jt.make_camera(K_HD, 1280, 720, R, t)
-    sides = face_extents(mesh, cam, jnp.eye(4), cull_backfaces=True, per_axis=True)
-    assert sides.max() > jt.render.PATCH_SIZES[-1]  # these faces were dropped before tiling
+    assert face_extents(mesh, cam, jnp.eye(4), cull_backfaces=True).max() > jt.render.PATCH_SIZES[-1]
+    faces, tiles = jt.render.tile_demand(mesh, cam, jnp.eye(4), cull_backfaces=True)
+    # Only the tiles a triangle overlaps: fewer than its bounding box's (a triangle is half its box).
+    assert 0 < tiles < faces * (1280 // 128) * (720 // 128 + 1)
     renderer = jt.render.Renderer(mesh, cam, cull_backfaces=True)
     out = renderer(jnp.eye(4))
-    assert renderer.plan.tile_capacity >= int(jt.render.tiles_needed(sides, jt.render.PATCH_SIZES[-1])) > 0
+    assert renderer.plan.tile_faces >= faces and renderer.plan.tile_capacity >= tiles
     assert not bool(out.overflow) and int(out.status) == jt.Status.OK
     assert np.asarray(out.silhouette).mean() > 0.6
     _assert_matches_ray_caster(out, mesh, R, t, 1280, 720, K_HD)
     # A plan without enough tiles reports the overflow instead of dropping faces silently.
     plan = renderer.plan
-    short = jt.render.RasterPlan(plan.patch_sizes, plan.capacities, cull_backfaces=True, tile_capacity=1)
+    short = jt.render.RasterPlan(
+        plan.patch_sizes, plan.capacities, cull_backfaces=True, tile_faces=plan.tile_faces, tile_capacity=tiles - 1
+    )
     out_short = jax.jit(lambda T: render(mesh, cam, T, plan=short))(jnp.eye(4))
     assert bool(out_short.overflow) and int(out_short.status) == jt.Status.RENDER_OVERFLOW
 

@@ -15,4 +15,4 @@ from ._raster import face_extents as face_extents
 from ._raster import merge_plans as merge_plans
 from ._raster import plan_raster as plan_raster
 from ._raster import render as render
-from ._raster import tiles_needed as tiles_needed
+from ._raster import tile_demand as tile_demand

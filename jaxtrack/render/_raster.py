@@ -3,9 +3,10 @@
 Each triangle is tested over a fixed square pixel patch anchored at its (image-clipped) bounding box.
 Triangles are sorted into a few patch-size classes (4, 6, 8, ..., 724 px); each class has a fixed
 capacity chosen on the host (`plan_raster`). A triangle larger than the plan's largest class (one
-close to the camera) is covered by square tiles of `RasterPlan.tile_size` px laid over its bounding
-box, from a pool of `tile_capacity` tiles shared by all such triangles, so no on-screen triangle is
-too big to draw. Depth is written with a scatter-min over all candidate (triangle, pixel) pairs, then
+close to the camera) goes to the tile pool instead: the image is cut into square tiles of
+`RasterPlan.tile_size` px, and each such triangle gets one pool slot per tile it overlaps (an exact
+triangle-rectangle test), from a pool of `tile_capacity` slots shared by up to `tile_faces` such
+triangles, so no on-screen triangle is too big to draw. Depth is written with a scatter-min over all candidate (triangle, pixel) pairs, then
 the winning face id with a scatter-max among the pixels whose depth equals the minimum. A class or
 the tile pool overflowing its capacity is reported (`RenderOutput.overflow`, status
 RENDER_OVERFLOW), never silently cropped; `Renderer` re-plans on the host when that happens.
@@ -39,8 +40,10 @@ from ._mesh import Mesh
 PATCH_SIZES = (4, 6, 8, 11, 16, 23, 32, 45, 64, 91, 128, 181, 256, 362, 512, 724)
 
 
-# Side of the tiles that cover triangles beyond the largest patch class: 256² candidates a tile.
-TILE_SIZE = 256
+# Side of the image tiles that cover triangles beyond the largest patch class (128² candidates each;
+# small tiles follow a big triangle's edges closely, and the triangle-tile tests stay few: one per
+# tile of the image and oversized face).
+TILE_SIZE = 128
 
 
 class RasterPlan(eqx.Module):
@@ -51,8 +54,9 @@ class RasterPlan(eqx.Module):
         capacities: triangles per class.
         near: near-plane depth; triangles with a vertex in front of it are dropped.
         cull_backfaces: skip back faces (closed meshes only).
-        tile_size: side of the tiles covering triangles larger than the largest class.
-        tile_capacity: tiles in the pool for such triangles (0: none expected; any is an overflow).
+        tile_size: side of the image tiles covering triangles larger than the largest class.
+        tile_faces: how many such triangles the pool takes (0: none expected; any is an overflow).
+        tile_capacity: (triangle, tile) slots in the pool.
     """
 
     patch_sizes: tuple = eqx.field(static=True)
@@ -60,6 +64,7 @@ class RasterPlan(eqx.Module):
     near: float = eqx.field(static=True, default=1.0)
     cull_backfaces: bool = eqx.field(static=True, default=False)
     tile_size: int = eqx.field(static=True, default=TILE_SIZE)
+    tile_faces: int = eqx.field(static=True, default=0)
     tile_capacity: int = eqx.field(static=True, default=0)
 
 
@@ -212,10 +217,12 @@ def render(
         flats.append(f)
         depths.append(d)
         fids.append(i)
-    # Faces beyond the largest class: tiles over their bounding boxes (none planned: an overflow).
+    # Faces beyond the largest class: the image tiles they overlap (none planned: an overflow).
     oversized = on_screen & (cls >= len(plan.patch_sizes))
-    if plan.tile_capacity > 0:
-        idx, corner, tile_overflow = _tile_slots(oversized, lo, sides, plan.tile_size, plan.tile_capacity)
+    if plan.tile_capacity > 0 and plan.tile_faces > 0:
+        idx, corner, tile_overflow = _tile_slots(
+            oversized, px_f, plan.tile_faces, plan.tile_size, plan.tile_capacity, width, height
+        )
         overflow = overflow | tile_overflow
         f, d, i = _rasterize_class(px_f, inv_z_f, idx, corner, plan.tile_size, width, height)
         flats.append(f)
@@ -263,34 +270,77 @@ def render(
     )
 
 
-def _tile_slots(oversized, lo, sides, tile: int, capacity: int):
-    """Spread the faces flagged `oversized` over a pool of `capacity` square tiles of side `tile`.
+def _tile_corners(width: int, height: int, tile: int) -> np.ndarray:
+    """Top-left pixels (G, 2) of the square tiles of side `tile` that cut the image (static)."""
+    gx, gy = np.meshgrid(np.arange(0, width, tile), np.arange(0, height, tile))
+    return np.stack([gx.reshape(-1), gy.reshape(-1)], -1).astype(np.int32)
 
-    Face f needs ceil(w_f / tile) x ceil(h_f / tile) tiles over its clipped bounding box (`lo`,
-    `sides`); the faces' tiles are laid out one after the other in the pool (a running sum), and
-    each pool slot finds its face by a binary search over that sum.
+
+def _tile_overlap(tri, corners, tile: int):
+    """(N, G) bool: triangle n (screen vertices (N, 3, 2)) may cover a pixel centre of tile g.
+
+    Exact separating-axis test of the triangle against the rectangle spanned by the tile's pixel
+    centres (the rectangle's two axes, then the triangle's three edge normals); degenerate triangles
+    count as overlapping (the rasteriser's own test drops them).
+    """
+    x0 = corners[:, 0].astype(tri.dtype)
+    y0 = corners[:, 1].astype(tri.dtype)
+    x1, y1 = x0 + (tile - 1), y0 + (tile - 1)
+    tmin, tmax = jnp.min(tri, axis=1), jnp.max(tri, axis=1)
+    hit = (tmin[:, 0:1] <= x1) & (tmax[:, 0:1] >= x0) & (tmin[:, 1:2] <= y1) & (tmax[:, 1:2] >= y0)
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    orient = jnp.sign(_edge(a[:, 0], a[:, 1], b[:, 0], b[:, 1], c[:, 0], c[:, 1]))[:, None, None]
+    xs = jnp.stack([x0, x1, x0, x1], -1)[None]  # (1, G, 4) rectangle corners
+    ys = jnp.stack([y0, y0, y1, y1], -1)[None]
+    for p, q in ((a, b), (b, c), (c, a)):
+        e = _edge(p[:, 0, None, None], p[:, 1, None, None], q[:, 0, None, None], q[:, 1, None, None], xs, ys)
+        hit = hit & ~jnp.all(orient * e < 0, axis=-1)  # all four corners outside this edge: separated
+    return hit
+
+
+def _tile_slots(oversized, px_f, face_capacity: int, tile: int, capacity: int, width: int, height: int):
+    """Fill the tile pool: one slot per (oversized face, image tile it overlaps).
+
+    The oversized faces are first gathered into `face_capacity` rows, then tested against every image
+    tile; the (face, tile) pairs that overlap are packed into `capacity` slots by a running sum.
 
     Returns:
-        face index per slot (capacity,) int32 (−1: unused), the slot's top-left pixel (capacity, 2)
-        int32 and whether the faces needed more tiles than the pool holds.
+        face per slot (capacity,) int32 (−1: unused), the slot's tile corner (capacity, 2) int32, and
+        whether the faces or their tiles exceeded the pool.
     """
-    nx = jnp.ceil(sides[:, 0] / tile).astype(jnp.int32)
-    ny = jnp.ceil(sides[:, 1] / tile).astype(jnp.int32)
-    count = jnp.where(oversized, nx * ny, 0)
-    end = jnp.cumsum(count)  # tiles of faces 0..f
-    slot = jnp.arange(capacity, dtype=end.dtype)
-    face = jnp.searchsorted(end, slot, side="right").astype(jnp.int32)  # first face whose end > slot
-    used = slot < end[-1]
-    f = jnp.where(used, face, 0)
-    k = slot - (end[f] - count[f])  # the slot's tile within its face, row-major
-    corner = lo[f] + tile * jnp.stack([k % jnp.maximum(nx[f], 1), k // jnp.maximum(nx[f], 1)], -1)
-    return jnp.where(used, face, -1), corner.astype(jnp.int32), end[-1] > capacity
+    num_faces = oversized.shape[0]
+    rank = jnp.cumsum(oversized) - 1
+    faces = jnp.full((face_capacity,), -1, jnp.int32).at[jnp.where(oversized, rank, face_capacity)].set(
+        jnp.arange(num_faces, dtype=jnp.int32), mode="drop"
+    )
+    corners = _tile_corners(width, height, tile)
+    num_tiles = len(corners)
+    hit = (faces >= 0)[:, None] & _tile_overlap(px_f[jnp.maximum(faces, 0)], jnp.asarray(corners), tile)
+    hit = hit.reshape(-1)
+    target = jnp.where(hit, jnp.cumsum(hit) - 1, capacity)
+    slot_face = jnp.full((capacity,), -1, jnp.int32).at[target].set(jnp.repeat(faces, num_tiles), mode="drop")
+    all_corners = jnp.asarray(np.tile(corners, (face_capacity, 1)))
+    slot_corner = jnp.zeros((capacity, 2), jnp.int32).at[target].set(all_corners, mode="drop")
+    overflow = (jnp.sum(oversized) > face_capacity) | (jnp.sum(hit) > capacity)
+    return slot_face, slot_corner, overflow
 
 
 def _front_facing(px_f):
     a, b, c = px_f[:, 0], px_f[:, 1], px_f[:, 2]
     # Image y points down: CCW-from-outside faces facing the camera have negative signed area.
     return _edge(a[:, 0], a[:, 1], b[:, 0], b[:, 1], c[:, 0], c[:, 1]) < 0
+
+
+def _screen_faces(mesh, camera, T_world_root, theta, model, cull_backfaces):
+    """Host planning: projected faces (F, 3, 2), clipped box sides (F, 2) and the on-screen mask."""
+    model = rigid_model(mesh.vertices.dtype) if model is None else model
+    theta = jnp.zeros((model.num_joints,), mesh.vertices.dtype) if theta is None else theta
+    p_cam, px, _ = _project_vertices(mesh, camera, model, jnp.asarray(T_world_root, mesh.vertices.dtype), theta)
+    valid = jnp.all(p_cam[mesh.faces, 2] > 0, axis=1)
+    if cull_backfaces:
+        valid = valid & _front_facing(px[mesh.faces])
+    _, sides, on_screen = _face_boxes(px[mesh.faces], valid, camera.width, camera.height)
+    return px[mesh.faces], jnp.where(on_screen[:, None], sides, 0), on_screen
 
 
 def face_extents(
@@ -300,37 +350,36 @@ def face_extents(
     theta: ArrayLike | None = None,
     model: KinematicModel | None = None,
     cull_backfaces: bool = False,
-    per_axis: bool = False,
 ) -> np.ndarray:
     """Host helper: on-screen pixel extent of every face (0 if off-screen or culled), for planning.
 
-    Returns (F,) the longer side of each face's clipped bounding box, or (F, 2) its (width, height)
-    with `per_axis`.
+    Returns (F,) the longer side of each face's image-clipped bounding box.
     """
-    model = rigid_model(mesh.vertices.dtype) if model is None else model
-    theta = jnp.zeros((model.num_joints,), mesh.vertices.dtype) if theta is None else theta
-    p_cam, px, _ = _project_vertices(mesh, camera, model, jnp.asarray(T_world_root, mesh.vertices.dtype), theta)
-    valid = jnp.all(p_cam[mesh.faces, 2] > 0, axis=1)
-    if cull_backfaces:
-        valid = valid & _front_facing(px[mesh.faces])
-    _, sides, on_screen = _face_boxes(px[mesh.faces], valid, camera.width, camera.height)
-    sides = np.asarray(jnp.where(on_screen[:, None], sides, 0))
-    return sides if per_axis else sides.max(axis=1)
+    _, sides, _ = _screen_faces(mesh, camera, T_world_root, theta, model, cull_backfaces)
+    return np.asarray(jnp.max(sides, axis=1))
 
 
-def tiles_needed(sides: ArrayLike, threshold: int, tile_size: int = TILE_SIZE) -> np.ndarray:
-    """Host helper: tiles of side `tile_size` that the faces larger than `threshold` px need.
+def tile_demand(
+    mesh: Mesh,
+    camera: Camera,
+    T_world_root: ArrayLike,
+    theta: ArrayLike | None = None,
+    model: KinematicModel | None = None,
+    cull_backfaces: bool = False,
+    threshold: int = PATCH_SIZES[-1],
+    tile_size: int = TILE_SIZE,
+) -> tuple[int, int]:
+    """Host helper: (faces larger than `threshold` px, image tiles those faces overlap) at one pose.
 
-    Args:
-        sides: (F, 2) or (N, F, 2) per-face (width, height) from `face_extents(..., per_axis=True)`.
-
-    Returns:
-        () or (N,) tile counts (the tile pool `render` fills for those faces).
+    These are what `render` puts in its tile pool (`RasterPlan.tile_faces`, `tile_capacity`).
     """
-    sides = np.asarray(sides)
-    big = sides.max(axis=-1) > threshold
-    per_face = np.ceil(sides[..., 0] / tile_size) * np.ceil(sides[..., 1] / tile_size)
-    return np.sum(np.where(big, per_face, 0), axis=-1).astype(np.int64)
+    tri, sides, _ = _screen_faces(mesh, camera, T_world_root, theta, model, cull_backfaces)
+    big = np.asarray(jnp.max(sides, axis=1) > threshold)
+    if not big.any():
+        return 0, 0
+    corners = _tile_corners(camera.width, camera.height, tile_size)
+    hit = _tile_overlap(jnp.asarray(np.asarray(tri)[big]), jnp.asarray(corners), tile_size)
+    return int(big.sum()), int(np.asarray(hit).sum())
 
 
 def plan_raster(
@@ -347,12 +396,13 @@ def plan_raster(
 
     Capacities are rounded up to multiples of 8 (at least `minimum` for a class in use): a big-patch
     class costs size² candidates per slot, so slack there is expensive. Faces larger than the largest
-    class go to the tile pool; its capacity is `tiles` (per frame, from `tiles_needed`) times the
-    margin, or, without `tiles`, the upper bound ceil(extent / tile_size)² per face.
+    class go to the tile pool: room for that many faces (rounded up to 8) and for `tiles` (the tiles
+    they overlap per frame, from `tile_demand`) times the margin, or, without `tiles`, the upper bound
+    (ceil(extent / tile_size) + 1)² per face.
 
     Args:
         extents: (F,) or (N, F) face extents in pixels (`face_extents`), N frames.
-        tiles: optional () or (N,) tiles the oversized faces need per frame (`tiles_needed`).
+        tiles: optional () or (N,) tiles the oversized faces overlap per frame (`tile_demand`).
     """
     extents = np.atleast_2d(np.asarray(extents))
     sizes = [s for s in patch_sizes if max_size is None or s < max_size] + ([max_size] if max_size else [])
@@ -366,15 +416,17 @@ def plan_raster(
     kept = [(s, c) for s, c in zip(sizes, caps) if c > 0]
     if not kept:
         kept = [(sizes[0], minimum)]
-    if tiles is None:  # square tiles over a square box: an upper bound of what the faces need
-        tiles = np.sum(np.where(extents > sizes[-1], np.ceil(extents / tile_size) ** 2, 0), axis=1)
-    tile_capacity = int(np.ceil(np.max(tiles) * margin))  # tiles cost tile_size² each: no rounding up
+    oversized = extents > sizes[-1]
+    if tiles is None:  # a span of e pixels touches at most ceil(e / tile) + 1 tiles per axis
+        tiles = np.sum(np.where(oversized, (np.ceil(extents / tile_size) + 1) ** 2, 0), axis=1)
+    big_faces = int(np.ceil(oversized.sum(axis=1).max() * margin))
     return RasterPlan(
         patch_sizes=tuple(s for s, _ in kept),
         capacities=tuple(c for _, c in kept),
         cull_backfaces=cull_backfaces,
         tile_size=tile_size,
-        tile_capacity=tile_capacity,
+        tile_faces=int(8 * np.ceil(big_faces / 8)),
+        tile_capacity=int(np.ceil(np.max(tiles) * margin)),  # tile_size² candidates each: no rounding up
     )
 
 
@@ -392,6 +444,7 @@ def merge_plans(old: RasterPlan, new: RasterPlan) -> RasterPlan:
         near=new.near,
         cull_backfaces=new.cull_backfaces,
         tile_size=new.tile_size,
+        tile_faces=max(old.tile_faces, new.tile_faces),
         tile_capacity=max(old.tile_capacity, new.tile_capacity),
     )
 
@@ -424,14 +477,13 @@ class Renderer:
         self.compilations = 0
 
     def _replan(self, T_world_root, theta):
-        sides = face_extents(
-            self.mesh, self.camera, T_world_root, theta, self.model, self.cull_backfaces, per_axis=True
-        )
-        tiles = tiles_needed(sides, PATCH_SIZES[-1])
+        args = (self.mesh, self.camera, T_world_root, theta, self.model, self.cull_backfaces)
+        extents = face_extents(*args)
+        _, tiles = tile_demand(*args)
         # Each re-plan widens the margin (1.3, 1.95, 2.9, ...): a drifting object settles after a
         # few compilations instead of re-planning every few frames.
         margin = 1.3 * 1.5**self.compilations
-        new = plan_raster(sides.max(axis=1), margin=margin, cull_backfaces=self.cull_backfaces, tiles=tiles)
+        new = plan_raster(extents, margin=margin, cull_backfaces=self.cull_backfaces, tiles=tiles)
         self.plan = new if self.plan is None else merge_plans(self.plan, new)
         self.compilations += 1
 
