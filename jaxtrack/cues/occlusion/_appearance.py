@@ -26,7 +26,7 @@ from ...geometry import Camera, KinematicModel, part_transforms, rigid_model
 from ...image import gaussian_blur, sample_bilinear
 from ...render import RenderOutput
 from ._atlas import TextureAtlas, texel_index
-from ._histogram import local_gain, patch_histogram_distance, to_gray
+from ._histogram import box_sum, local_gain, patch_histogram_distance, to_gray
 
 
 class OcclusionParams(eqx.Module):
@@ -36,6 +36,9 @@ class OcclusionParams(eqx.Module):
         threshold: occluded when d > threshold (paper: 1/4).
         rate: appearance update rate (paper: 1/8).
         min_known: least fraction of a window's pixels with a known model appearance for a decision.
+        min_cos: least |cos| of the angle between the surface normal and the viewing ray for an
+            observation to update the model: texels seen only at grazing angles (a face turning
+            into view) stay unknown instead of being filled with smeared values.
         max_gain: bound of the local brightness gain between model and image (≥ 1; 1 switches the
             compensation off). Shading changes as the surface turns against the light, and texels
             hidden for a while miss the updates that would have followed it; a gain within
@@ -45,21 +48,25 @@ class OcclusionParams(eqx.Module):
     threshold: jax.Array
     rate: jax.Array
     min_known: jax.Array
+    min_cos: jax.Array
     max_gain: jax.Array
 
 
-def occlusion_params(threshold=0.25, rate=0.125, min_known=0.25, max_gain=1.5, dtype=jnp.float32) -> OcclusionParams:
+def occlusion_params(
+    threshold=0.25, rate=0.125, min_known=0.25, min_cos=0.3, max_gain=1.5, dtype=jnp.float32
+) -> OcclusionParams:
     """`OcclusionParams` with the paper's values by default.
 
     Raises:
         ValueError: naming a parameter outside its domain.
     """
-    for name, value, lo, hi in (("threshold", threshold, 0.0, 1.0), ("rate", rate, 0.0, 1.0), ("min_known", min_known, 0.0, 1.0)):
+    bounded = (("threshold", threshold), ("rate", rate), ("min_known", min_known), ("min_cos", min_cos))
+    for name, value, lo, hi in ((n, v, 0.0, 1.0) for n, v in bounded):
         if not lo <= float(value) <= hi:
             raise ValueError(f"occlusion_params: {name} must lie in [{lo}, {hi}], got {value}")
     if not float(max_gain) >= 1.0:
         raise ValueError(f"occlusion_params: max_gain must be ≥ 1, got {max_gain}")
-    return OcclusionParams(*(jnp.asarray(x, dtype) for x in (threshold, rate, min_known, max_gain)))
+    return OcclusionParams(*(jnp.asarray(x, dtype) for x in (threshold, rate, min_known, min_cos, max_gain)))
 
 
 class OcclusionConfig(eqx.Module):
@@ -69,6 +76,8 @@ class OcclusionConfig(eqx.Module):
         bins: grey histogram bins.
         window: odd side of the square patch (pixels).
         depth_tolerance: relative depth slack of the texel visibility test in the update.
+        edge_margin: observations closer than this (pixels) to the silhouette edge do not update the
+            model (the blurred image mixes in the background there).
         gain_window: odd side of the window of the local gain estimate (pixels).
         blur_sigma: Gaussian σ (pixels) applied to the image before it is read at the texels; it
             removes aliasing and pixel noise that the averaging model (eq. 10) does not have, which
@@ -78,6 +87,7 @@ class OcclusionConfig(eqx.Module):
     bins: int = eqx.field(static=True, default=8)
     window: int = eqx.field(static=True, default=9)
     depth_tolerance: float = eqx.field(static=True, default=5e-3)
+    edge_margin: int = eqx.field(static=True, default=2)
     gain_window: int = eqx.field(static=True, default=31)
     blur_sigma: float = eqx.field(static=True, default=1.0)
 
@@ -135,19 +145,23 @@ class TexelObservation(eqx.Module):
     Attributes:
         value: (T,) grey value (bilinear) at the texel's projection.
         visible: (T,) bool texel in front of the depth buffer, inside the image and inside its triangle.
+        reliable: (T,) bool visible, not at a grazing angle and away from the silhouette edge: may
+            update the model.
         pixel: (T,) int32 flat index (row · W + column) of the pixel nearest the projection.
     """
 
     value: jax.Array
     visible: jax.Array
+    reliable: jax.Array
     pixel: jax.Array
 
 
-def _observe_one(atlas, image, depth, camera, T_world_parts, tolerance, blur_sigma):
+def _observe_one(atlas, image, depth, camera, T_world_parts, params, config):
     T_cam_parts = camera.T_cam_world @ T_world_parts
     T = T_cam_parts[atlas.texel_part] if T_world_parts.shape[0] > 1 else T_cam_parts[0]
-    p = atlas.texel_p_model
+    p, n = atlas.texel_p_model, atlas.texel_normal
     p_cam = jnp.stack([T[..., i, 0] * p[:, 0] + T[..., i, 1] * p[:, 1] + T[..., i, 2] * p[:, 2] + T[..., i, 3] for i in range(3)], -1)
+    n_cam = jnp.stack([T[..., i, 0] * n[:, 0] + T[..., i, 1] * n[:, 1] + T[..., i, 2] * n[:, 2] for i in range(3)], -1)
     z = p_cam[:, 2]
     safe_z = jnp.where(z > 1e-6, z, 1e-6)
     K = camera.K
@@ -157,11 +171,17 @@ def _observe_one(atlas, image, depth, camera, T_world_parts, tolerance, blur_sig
     h, w = depth.shape
     ui = jnp.clip(jnp.round(u).astype(jnp.int32), 0, w - 1)
     vi = jnp.clip(jnp.round(v).astype(jnp.int32), 0, h - 1)
-    gray = gaussian_blur(to_gray(image).astype(p_cam.dtype)[..., None], blur_sigma)
+    gray = gaussian_blur(to_gray(image).astype(p_cam.dtype)[..., None], config.blur_sigma)
     value, inside = sample_bilinear(gray, u, v)
     depth_at = depth[vi, ui]  # +inf off the object: such texels are hidden behind the silhouette edge
-    visible = inside & (z > 1e-6) & jnp.isfinite(depth_at) & (z <= depth_at * (1 + tolerance) + 1e-3)
-    return TexelObservation(value[:, 0], visible & atlas.texel_live, vi * w + ui)
+    visible = inside & (z > 1e-6) & jnp.isfinite(depth_at) & (z <= depth_at * (1 + config.depth_tolerance) + 1e-3)
+    visible = visible & atlas.texel_live
+    # |cos| of the viewing angle (two-sided: open meshes show their inside too).
+    cos = jnp.abs(jnp.sum(n_cam * p_cam, -1)) / jnp.maximum(jnp.linalg.norm(p_cam, axis=-1), 1e-9)
+    side = 2 * config.edge_margin + 1
+    interior = box_sum(jnp.isfinite(depth).astype(p_cam.dtype)[..., None], config.edge_margin)[..., 0] >= side * side - 0.5
+    reliable = visible & (cos >= params.min_cos) & interior[vi, ui]
+    return TexelObservation(value[:, 0], visible, reliable, vi * w + ui)
 
 
 def observe_texels(
@@ -170,6 +190,7 @@ def observe_texels(
     depth,
     cameras: Camera,
     T_world_root,
+    params: OcclusionParams,
     theta=None,
     model: KinematicModel | None = None,
     config: OcclusionConfig | None = None,
@@ -182,6 +203,7 @@ def observe_texels(
         depth: (C, H, W) rendered depth at χ_t (+inf off the object), for the visibility test.
         cameras: stacked rig (C on the leading axis).
         T_world_root: (4, 4) root pose; theta: (J,) joint angles; model: kinematic tree (rigid if None).
+        params: `min_cos` decides which observations are reliable enough to update the model.
 
     Returns:
         `TexelObservation` with a leading C axis.
@@ -192,7 +214,7 @@ def observe_texels(
     T_world_root = jnp.asarray(T_world_root, dtype)
     theta = jnp.zeros((model.num_joints,), dtype) if theta is None else jnp.asarray(theta, dtype)
     T_world_parts = part_transforms(model, T_world_root, theta)
-    return jax.vmap(lambda img, dep, cam: _observe_one(atlas, img, dep, cam, T_world_parts, config.depth_tolerance, config.blur_sigma))(
+    return jax.vmap(lambda img, dep, cam: _observe_one(atlas, img, dep, cam, T_world_parts, params, config))(
         images, depth, cameras
     )
 
@@ -215,9 +237,14 @@ def _detect_one(atlas, appearance, observation, rendered, params, config):
     seen_now = covered & observation.visible[idx]
     image = jnp.where(seen_now, observation.value[idx], 0.0).astype(model.dtype)
     valid = known & seen_now
+    # Gains per group of similar surface normals (6 groups: the dominant signed model-frame axis).
+    normal = atlas.texel_normal[idx]
+    axis = jnp.argmax(jnp.abs(normal), -1)
+    negative = jnp.take_along_axis(normal, axis[..., None], -1)[..., 0] < 0
+    groups = (2 * axis + negative).astype(jnp.int32)
 
     def decide(gain_mask):
-        gain = local_gain(model, image, gain_mask, config.gain_window, params.max_gain)
+        gain = local_gain(model, image, gain_mask, config.gain_window, params.max_gain, groups, 6)
         d, count = patch_histogram_distance(model * gain, image, valid, config.bins, config.window)
         enough = count >= params.min_known * config.window**2
         return d, covered & enough & (d > params.threshold)
@@ -275,7 +302,7 @@ def update_appearance(
     """
     occ_flat = occluded.reshape(occluded.shape[0], -1)
     occ_at = jnp.take_along_axis(occ_flat, observation.pixel, axis=1)
-    usable = observation.visible & ~occ_at
+    usable = observation.reliable & ~occ_at
     n = jnp.sum(usable, 0)
     observed = n > 0
     mean = jnp.sum(jnp.where(usable, observation.value, 0.0), 0) / jnp.maximum(n, 1)

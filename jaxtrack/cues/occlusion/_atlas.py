@@ -28,6 +28,7 @@ class TextureAtlas(eqx.Module):
             into its triangle.
         texel_part: (T,) int32 part of the texel's face.
         texel_live: (T,) bool texel lies (at least partly) inside its triangle.
+        texel_normal: (T, 3) unit normal of the texel's face (model frame).
     """
 
     face_offset: jax.Array
@@ -36,6 +37,7 @@ class TextureAtlas(eqx.Module):
     texel_p_model: jax.Array
     texel_part: jax.Array
     texel_live: jax.Array
+    texel_normal: jax.Array
 
     @property
     def num_texels(self) -> int:
@@ -81,6 +83,8 @@ def make_texture_atlas(mesh: Mesh, texel_mm: float = 1.0, max_texels: int = 400_
     lin = np.einsum("fij,fjk->fik", Ginv, np.stack([e1, e2], 1))  # (F, 2, 3)
     off = -np.einsum("fik,fk->fi", lin, a)
     face_map = np.concatenate([lin, off[..., None]], -1)
+    normal = np.cross(e1, e2)
+    normal = normal / np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-30)
     offset = np.concatenate([[0], np.cumsum(res**2)[:-1]])
     total = int(np.sum(res**2))
     face_of = np.repeat(np.arange(len(f)), res**2)
@@ -100,6 +104,7 @@ def make_texture_atlas(mesh: Mesh, texel_mm: float = 1.0, max_texels: int = 400_
         texel_p_model=jnp.asarray(p, dtype),
         texel_part=jnp.asarray(np.asarray(mesh.face_part)[face_of], jnp.int32),
         texel_live=jnp.asarray(live & ok[face_of]),
+        texel_normal=jnp.asarray(normal[face_of], dtype),
     )
 
 

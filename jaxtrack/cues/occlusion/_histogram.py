@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 
 
@@ -66,11 +67,22 @@ def patch_histogram_distance(gray_a, gray_b, valid, bins: int, window: int):
     return jnp.where(count > 0, d, 0.0), count
 
 
-def local_gain(model, image, valid, window: int, max_gain):
-    """Brightness gain g(x) = Σ_W I / Σ_W M over the valid pixels of a window, clipped to
-    [1/max_gain, max_gain] (1 where the window holds no valid pixel): M·g matches I's local shading."""
-    w = valid.astype(model.dtype)[..., None]
-    sums = box_sum(jnp.stack([model, image], -1) * w, window // 2)
-    ratio = sums[..., 1] / jnp.where(sums[..., 0] > 1e-6, sums[..., 0], 1.0)
-    ratio = jnp.where(sums[..., 0] > 1e-6, ratio, 1.0)
+def local_gain(model, image, valid, window: int, max_gain, groups=None, num_groups: int = 1):
+    """Brightness gain g(x) = Σ I / Σ M over the valid pixels of a window, clipped to
+    [1/max_gain, max_gain] (1 where the window holds no valid pixel): M·g matches I's local shading.
+
+    With `groups` ((H, W) int in [0, num_groups), e.g. a quantised surface normal), the sums only run
+    over the window's pixels of x's own group: Lambertian shading changes by normal, so two faces
+    meeting inside one window get their own gains.
+    """
+    dtype = model.dtype
+    if groups is None:
+        groups, num_groups = jnp.zeros(model.shape, jnp.int32), 1
+    member = (groups[..., None] == jnp.arange(num_groups)) & valid[..., None]  # (H, W, G)
+    w = member.astype(dtype)
+    sums = box_sum(jnp.concatenate([model[..., None] * w, image[..., None] * w], -1), window // 2)
+    own = jax.nn.one_hot(groups, num_groups, dtype=dtype)
+    den = jnp.sum(sums[..., :num_groups] * own, -1)
+    num = jnp.sum(sums[..., num_groups:] * own, -1)
+    ratio = jnp.where(den > 1e-6, num / jnp.where(den > 1e-6, den, 1.0), 1.0)
     return jnp.clip(ratio, 1.0 / max_gain, max_gain)
