@@ -104,6 +104,16 @@ def heaviside(s, epsilon):
     return 0.5 + jnp.arctan(s / epsilon) / jnp.pi
 
 
+def region_membership(phi):
+    """Object membership in [0, 1] for the density estimates: a one-pixel ramp across the zero level.
+
+    Not H(Φ): the atan Heaviside's tails (≈ 1/(π|Φ|)) summed over a background many times larger
+    than the object contaminate the object's moments (measured: object σ ≈ 50 grey values on a
+    flat-coloured teapot instead of ≈ 15).
+    """
+    return jnp.clip(0.5 + phi, 0.0, 1.0)
+
+
 def dirac(s, epsilon):
     """δ(s) = H'(s) = ε / (π (ε² + s²))."""
     return epsilon / (jnp.pi * (epsilon**2 + s**2))

@@ -1,9 +1,11 @@
 """Shape matching (eq. 14-15): where does each silhouette contour point of Φ0 go on the zero level of Φ?
 
 Closest points (eq. 14): jump flooding from the pixels next to Φ's zero level gives every pixel its
-nearest contour pixel c; both ends are then moved onto their zero level along the gradient,
-x' = x − Φ(x) ∇Φ/|∇Φ| (exact for a signed distance function), so the match vector d = c' − x0' is
-sub-pixel and exactly zero when the two contours agree.
+nearest contour pixel c (the distance transform with nearest-point indices), moved onto the zero
+level along the gradient, x' = x − Φ(x) ∇Φ/|∇Φ|. The contour point x0 of Φ0 is moved onto Φ0's zero
+level the same way, and the guess c' is refined by projecting x0' onto Φ's zero level with bilinear
+Φ, ∇Φ (exact for a signed distance function), so d = c' − x0' is sub-pixel and exactly zero when
+the two contours agree.
 
 Regularised matches (eq. 15): a smooth displacement field w minimising
 Σ (Φ(x + w) − Φ0(x))² + α Σ |∇w|², with the flow cue's numerics (warping, linearised data term,
@@ -16,7 +18,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from ...image import warp_bilinear
+from ...image import sample_bilinear, warp_bilinear
 from ._redistance import contour_pixels, nearest_seed_points
 
 
@@ -50,8 +52,20 @@ def closest_point_matches(phi0, phi):
     h, w = phi.shape
     iy = jnp.clip(near[..., 0], 0, h - 1).astype(jnp.int32)
     ix = jnp.clip(near[..., 1], 0, w - 1).astype(jnp.int32)
-    target = zero_level_points(phi)[iy, ix]
+    guess = zero_level_points(phi)[iy, ix]
     source = zero_level_points(phi0)
+    # Refine: two projections x ← x − Φ(x) ∇Φ/|∇Φ|² with bilinear Φ and ∇Φ, started at the source
+    # (exact closest point for a signed distance function); kept where it agrees with the
+    # jump-flooding guess to 2 px (elsewhere Φ is no distance function, the guess stands).
+    gx, gy = _central_gradient(phi)
+    field = jnp.stack([phi, gx, gy], -1)
+    p = source
+    for _ in range(2):
+        v, _ = sample_bilinear(field, p[..., 0], p[..., 1])
+        n2 = v[..., 1] ** 2 + v[..., 2] ** 2
+        s = jnp.where(n2 > 1e-6, v[..., 0] / jnp.where(n2 > 1e-6, n2, 1.0), 0.0)
+        p = p - s[..., None] * v[..., 1:]
+    target = jnp.where((jnp.sum((p - guess) ** 2, -1) < 4.0)[..., None], p, guess)
     return jnp.where(jnp.any(seeds), target - source, 0.0)
 
 

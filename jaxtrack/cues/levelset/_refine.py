@@ -25,7 +25,7 @@ from ...image import silhouette_sdf
 from ...render import Mesh, RasterPlan, render
 from ...solve import Correspondences, Cue, SolverConfig, correspondences_from_pixels, solve_pose
 from ._densities import LocalDensities, check_grid, data_term, local_densities
-from ._energy import RegionParams, evolve, heaviside
+from ._energy import RegionParams, evolve, region_membership
 from ._features import feature_channels
 from ._matching import closest_point_matches, regularised_matches
 from ._redistance import contour_pixels
@@ -48,11 +48,11 @@ class RegionConfig(eqx.Module):
     levelset_iterations: int = eqx.field(static=True, default=10)
     redistance_every: int = eqx.field(static=True, default=5)
     density_factor: int = eqx.field(static=True, default=4)
-    outer_iterations: int = eqx.field(static=True, default=12)
+    outer_iterations: int = eqx.field(static=True, default=30)
     solver_steps: int = eqx.field(static=True, default=5)
     capacity: int = eqx.field(static=True, default=512)
     matching: str = eqx.field(static=True, default="closest")
-    texture: bool = eqx.field(static=True, default=True)
+    texture: bool = eqx.field(static=True, default=False)
 
     def __check_init__(self):
         if self.matching not in ("closest", "regularised"):
@@ -193,7 +193,7 @@ def segment(features, phi0, phi_init, densities: LocalDensities, params: RegionP
     f = config.density_factor
     force = data_term(features, densities, f)
     phi = evolve(phi_init, phi0, force, params, config.levelset_iterations, config.redistance_every)
-    new = local_densities(features, heaviside(phi, params.epsilon), params.rho, params.kappa, params.sigma_min, f)
+    new = local_densities(features, region_membership(phi), params.rho, params.kappa, params.sigma_min, f)
     return phi, new
 
 
@@ -240,9 +240,9 @@ def refine_pose_region(problem: RegionProblem, images, offsets, state: RegionSta
         out = render(mesh, cam, T, theta, model, problem.plan)
         sil = out.face_id >= 0
         phi0 = silhouette_sdf(sil).astype(dtype)
-        own = local_densities(feats, heaviside(phi0, params.epsilon), params.rho, params.kappa, params.sigma_min, f)
+        own = local_densities(feats, region_membership(phi0), params.rho, params.kappa, params.sigma_min, f)
         dens = jax.tree.map(lambda a, b: jnp.where(has_dens, a, b), dens, own)
-        phi, new_dens = segment(feats, phi0, jnp.where(first, phi0, phi_prev), dens, params, config)
+        phi, new_dens = segment(feats, phi0, phi0, dens, params, config)
         matches = contour_matches(phi0, phi, sil, out.p_model, out.part_id, params, config.capacity, config.matching)
         return phi0, phi, new_dens, matches, out.overflow, jnp.any(sil)
 
