@@ -57,9 +57,8 @@ def _vertex_rows(p_t, p_t1, valid, rendered: RenderOutput, vertex_px, mesh: Mesh
     return pixel, mesh.vertices[nearest].astype(p_t.dtype), mesh.vertex_part[nearest], valid & close
 
 
-@eqx.filter_jit  # inlined inside a caller's jit
 @eqx.debug.assert_max_traces(max_traces=None)  # counts traces (eqx.debug.get_num_traces); never fails
-def _sift_correspondences(matches, rendered, cameras, params, weight, mesh, model, T_world_root, theta, mode):
+def _correspondences_body(matches, rendered, cameras, params, weight, mesh, model, T_world_root, theta, mode):
     num_cameras, cap = matches.valid.shape
     cam_index = jnp.repeat(jnp.arange(num_cameras, dtype=jnp.int32), cap)
     if mode == "surface":
@@ -88,6 +87,9 @@ def _sift_correspondences(matches, rendered, cameras, params, weight, mesh, mode
         undistort=False,
         cue=Cue.SIFT,
     )
+
+
+_sift_correspondences = eqx.filter_jit(_correspondences_body)  # inlined inside a caller's jit
 
 
 def sift_correspondences(
@@ -129,9 +131,8 @@ def sift_correspondences(
     return _sift_correspondences(matches, rendered, cameras, params, weight, mesh, model, T_world_root, theta, mode)
 
 
-@eqx.filter_jit
 @eqx.debug.assert_max_traces(max_traces=None)
-def backprojection_filter(
+def _backprojection_body(
     corr: Correspondences, cameras: Camera, model: KinematicModel, T_world_root, theta, params: SiftParams
 ) -> Correspondences:
     """Zero the weight of rows whose model point, projected with a preliminary pose (T_world_root,
@@ -149,6 +150,9 @@ def backprojection_filter(
     px, z = _project(cameras, corr.camera, p_world)
     close = (jnp.linalg.norm(px - corr.pixel, axis=-1) <= params.backprojection_px) & (z > 0)
     return corr.with_weight(jnp.where(close, corr.weight, 0.0))
+
+
+backprojection_filter = eqx.filter_jit(_backprojection_body)
 
 
 @eqx.filter_jit

@@ -80,10 +80,12 @@ def _filter_one(p_t, p_t1, valid, params, rounds: int):
     return keep & ~(moving & (length < params.static_px))
 
 
-@eqx.filter_jit
 @eqx.debug.assert_max_traces(max_traces=None)  # counts traces (eqx.debug.get_num_traces); never fails
-def remove_gross_and_static(matches: SiftMatches, params: SiftParams, rounds: int = 2) -> SiftMatches:
+def _filter_body(matches: SiftMatches, params: SiftParams, rounds: int = 2) -> SiftMatches:
     """Drop gross mismatches (`rounds` passes, static) and, when the mean motion is large, still
     matches; per camera. Jittable."""
     keep = jax.vmap(lambda a, b, v: _filter_one(a, b, v, params, rounds))(matches.p_t, matches.p_t1, matches.valid)
     return eqx.tree_at(lambda m: m.valid, matches, keep)
+
+
+remove_gross_and_static = eqx.filter_jit(_filter_body)
