@@ -5,7 +5,11 @@
     SEQ/000000/scene_camera.json        {"0": {"cam_K": [9], "cam_R_w2c": [9], "cam_t_w2c": [3]}, ...}
     SEQ/000000/scene_gt.json            {"0": [{"obj_id": 1, "cam_R_m2c": [9], "cam_t_m2c": [3]}], ...}
 
-Frame 0 of scene_gt.json is the initial pose; later frames, when present, are ground truth.
+Frames are named by BOP image id and paired with the JSON entries by id, never by position: ids may
+have gaps, an entry whose image is missing is an error naming the file, an image without ground truth
+has unknown (NaN) poses. The first image's scene_gt.json entry is the initial pose; later entries, when
+present, are ground truth. scene_camera.json holds one entry per image (or only the first); cam_K must
+not change over a camera's frames, and all its frames must have one size.
 """
 
 from __future__ import annotations
