@@ -176,3 +176,7 @@ def test_log_derivative_at_exactly_pi(axis):
     _, d = jax.jvp(so3_log, (R,), (R @ so3_hat(-w / np.pi),))
     np.testing.assert_allclose(d, -w / np.pi, atol=1e4 * EPS)
     np.testing.assert_allclose(d, one_sided, atol=1e-6)
+    # float32 takes the same branches (its thresholds come from its own eps): finite and equal to float64.
+    J32 = jax.jacrev(so3_log)(R.astype(jnp.float32))
+    assert J32.dtype == jnp.float32 and np.isfinite(J32).all()
+    np.testing.assert_allclose(J32, jax.jacrev(so3_log)(R), atol=1e3 * float(jnp.finfo(jnp.float32).eps))
