@@ -6,6 +6,7 @@ from ._api import compute_flow_bidirectional as compute_flow_bidirectional
 from ._api import compute_flow_roi as compute_flow_roi
 from ._api import roi_crop as roi_crop
 from ._consistency import forward_backward_consistency as forward_backward_consistency
+from ._correspondences import flow_correspondences as flow_correspondences
 from ._energy import FlowEnergyParams as FlowEnergyParams
 from ._energy import articulated_params as articulated_params
 from ._energy import flow_confidence as flow_confidence
