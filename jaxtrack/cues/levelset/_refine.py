@@ -272,7 +272,7 @@ def refine_pose_region(problem: RegionProblem, images, offsets, state: RegionSta
             solve_status,
             status_where(jnp.any(overflow), Status.RENDER_OVERFLOW, Status.OK),
         )
-        return (sol.T_world_root, sol.theta, phi, dens, jnp.ones_like(has_dens), it + 1, settled | no_matches, frame_status, corr, phi0, jnp.sum(weight > 0))
+        return (sol.T_world_root, sol.theta, phi, dens, jnp.ones_like(has_dens), it + 1, settled | no_matches, frame_status, corr, phi0, jnp.sum(weight > 0).astype(jnp.int32))
 
     def cond(carry):
         it, settled, status = carry[5], carry[6], carry[7]
