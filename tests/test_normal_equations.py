@@ -45,9 +45,10 @@ def test_jacobian_matches_autodiff_of_the_residual(model_name):
 
     y0 = jnp.concatenate([jnp.zeros(6), theta0])
     analytic = jax.jit(lambda T, th: plane_residuals_and_jacobian(model, T, th, corr.p_model, corr.part, normals, offsets))
-    s, jac = analytic(T0, theta0)
-    assert jac.shape == (corr.capacity, 2, model.num_dof)
+    s, columns = analytic(T0, theta0)
+    assert columns.shape == (model.num_dof, corr.capacity, 2)
     np.testing.assert_allclose(s, jax.jit(s_of)(y0), atol=1e-12)
+    jac = jnp.moveaxis(columns, 0, -1)  # (N, 2, D), as jacfwd lays it out
     np.testing.assert_allclose(jac, jax.jit(jax.jacfwd(s_of))(y0), atol=1e-8, rtol=1e-8)
     # The plane form has the Plücker cost of eq. 4: Σ_k s_k² = |T X × n − m|².
     r = jt.solve.plucker_residuals(model, T0, theta0, corr)
@@ -61,8 +62,8 @@ def test_normal_equations_are_the_weighted_gauss_newton_system(model_name):
     weight = jnp.asarray(np.random.default_rng(0).uniform(0.0, 2.0, corr.capacity))
     T0, theta0 = jnp.asarray(scene.T_world_root), jnp.asarray(scene.theta)
     H, g, cost = plane_normal_equations(model, T0, theta0, corr.p_model, corr.part, normals, offsets, weight)
-    s, jac = plane_residuals_and_jacobian(model, T0, theta0, corr.p_model, corr.part, normals, offsets)
-    J = np.asarray(jac).reshape(-1, model.num_dof)
+    s, columns = plane_residuals_and_jacobian(model, T0, theta0, corr.p_model, corr.part, normals, offsets)
+    J = np.moveaxis(np.asarray(columns), 0, -1).reshape(-1, model.num_dof)
     w = np.repeat(np.asarray(weight), 2)
     np.testing.assert_allclose(H, J.T @ (w[:, None] * J), rtol=1e-10)
     np.testing.assert_allclose(g, J.T @ (w * np.asarray(s).ravel()), rtol=1e-10, atol=1e-9)
@@ -74,11 +75,11 @@ def test_joint_off_the_path_has_a_zero_column():
     """A point's row only depends on the joints between the root and its part."""
     model = MODELS["tree2x2"]()
     scene, corr, normals, offsets = _problem(model)
-    _, jac = plane_residuals_and_jacobian(
+    _, columns = plane_residuals_and_jacobian(
         model, jnp.asarray(scene.T_world_root), jnp.asarray(scene.theta), corr.p_model, corr.part, normals, offsets
     )
     on_path = np.asarray(model.part_joints)[np.asarray(corr.part)]  # (N, J)
-    joint_cols = np.abs(np.asarray(jac)[..., 6:]).max(axis=1)  # (N, J)
+    joint_cols = np.abs(np.asarray(columns)[6:]).max(axis=-1).T  # (N, J)
     assert np.all(joint_cols[~on_path] == 0.0)
     assert np.all(joint_cols[on_path] > 0.0)
 

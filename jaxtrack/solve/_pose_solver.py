@@ -97,12 +97,13 @@ def _safe_sqrt(x):
 
 
 def rigidity_tolerance(dtype) -> float:
-    """Tolerance of the rigid-transform test on T_init: 10 √eps of the solve dtype.
+    """Tolerance of the rigid-transform test on T_init: eps^(1/3) of the solve dtype.
 
-    ~1.5e-7 in float64 (poses stored with 8 significant digits, as BOP files are, pass) and ~3.5e-3 in
-    float32 (a float64 pose rounded to float32 passes); a zero, scaled or sheared block does not.
+    ~6e-6 in float64 (rotations written to files with 6 decimals, as pose files often are, pass) and
+    ~4.9e-3 in float32 (a float64 pose rounded to float32 passes); a zero, scaled (by 1 %), sheared or
+    reflected block does not.
     """
-    return 10.0 * float(np.sqrt(np.finfo(dtype).eps))
+    return float(np.finfo(dtype).eps ** (1.0 / 3.0))
 
 
 def degeneracy_tolerance(dtype) -> float:
@@ -351,16 +352,15 @@ def solve_pose(
             model, se3_exp(y[:6]) @ T_init_safe, y[6:], clean.p_model, clean.part, normals, offsets, weight
         )
         conditioning = root_conditioning(H)
+        finite = jnp.all(jnp.isfinite(y))
     else:
         y, (converged, num_steps, nonfinite, conditioning) = solve_implicit(
             _weighted_residual, lambda guess: _gauss_newton_iterate(guess, problem, config), y0, problem
         )
-        solver_status = first_failure(
-            status_where(nonfinite > 0, Status.NONFINITE, Status.OK),
-            status_where(converged > 0, Status.OK, Status.MAX_STEPS),
-        )
-    finite = jnp.all(jnp.isfinite(y))
+        finite = jnp.all(jnp.isfinite(y)) & ~(nonfinite > 0)
+        solver_status = status_where(converged > 0, Status.OK, Status.MAX_STEPS)
     degenerate = ~(conditioning >= degeneracy_tolerance(dtype))
+    # First cause first: bad input, then a NaN/inf (which also spoils H), then rank, then the solver.
     status = first_failure(
         pre_status,
         status_where(finite, Status.OK, Status.NONFINITE),
