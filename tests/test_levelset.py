@@ -1,6 +1,8 @@
 """Region cue (eq. 11-15): energy/update consistency, densities, shape matching, segmentation and
 region-only refinement (rigid, two cameras, a 2-joint chain), compile counts."""
 
+import itertools
+
 import cv2
 import equinox as eqx
 import jax
@@ -81,7 +83,7 @@ def test_energy_decreases_over_iterations():
     for _ in range(10):
         p = p + jnp.clip(dt * levelset_update(p, phi0, force, params), -params.max_step, params.max_step)
         energies.append(float(levelset_energy(p, phi0, log_p, params)))
-    assert all(b <= a + 1e-9 for a, b in zip(energies, energies[1:])), energies
+    assert all(b <= a + 1e-9 for a, b in itertools.pairwise(energies)), energies
     # With re-distancing the energy still ends far below the start.
     q = phi
     for _ in range(10):
@@ -291,7 +293,7 @@ def rigid_scene():
     T_true[2, 3] += 520.0
     img, mask = _paint(Renderer(mesh, cam), mesh, T_true, None, H, W)
     refiner = RegionRefiner(mesh, cam)
-    return dict(mesh=mesh, cam=cam, T=T_true, img=img, mask=mask, refiner=refiner)
+    return {"mesh": mesh, "cam": cam, "T": T_true, "img": img, "mask": mask, "refiner": refiner}
 
 
 def _perturb(T, scale, direction=(1.0, 1.0, 1.0, 0.05, 0.05, 0.05)):
@@ -306,8 +308,10 @@ def test_segmentation_iou_homogeneous_object(shared_data):
     from jaxtrack.cues.levelset import segment
     from jaxtrack.synth import SynthConfig, render_sequence
 
-    cfg = SynthConfig(object="teapot", appearance="flat", colour=(210, 180, 60), background="coffee", frames=1,
-                      width=W, height=H, focal=F * 0.75, motion="turntable")
+    cfg = SynthConfig(
+        object="teapot", appearance="flat", colour=(210, 180, 60), background="coffee", frames=1,
+        width=W, height=H, focal=F * 0.75, motion="turntable",
+    )
     seq = render_sequence(cfg)
     mesh = make_mesh(seq["mesh"].vertices, seq["mesh"].faces, dtype=jnp.float64)
     cam = make_camera(seq["K"], W, H, dtype=jnp.float64)
@@ -351,7 +355,7 @@ def test_refine_rigid_two_cameras(rigid_scene):
     imgs = np.stack([_paint(Renderer(s["mesh"], select_camera(cams, c)), s["mesh"], s["T"], None, H, W)[0] for c in range(2)])
     refiner = RegionRefiner(s["mesh"], cams)
     T0 = _perturb(s["T"], 5.0)
-    res, (offsets, crop) = refiner(imgs, T0)
+    res, _ = refiner(imgs, T0)
     model = refiner.model
     e0 = _mean_vertex_error(s["mesh"], model, T0, np.zeros(0), s["T"], np.zeros(0))
     e1 = _mean_vertex_error(s["mesh"], model, np.asarray(res.T_world_root), np.zeros(0), s["T"], np.zeros(0))
@@ -385,6 +389,6 @@ def test_fifty_refinements_compile_once(rigid_scene):
     before = eqx.debug.get_num_traces(refine_pose_region)
     rng = np.random.default_rng(7)
     for _ in range(50):
-        res, (_, crop) = refiner(s["img"], _perturb(s["T"], 2.0, rng.normal(size=6) / np.sqrt(6) * [1, 1, 1, 0.05, 0.05, 0.05]))
+        res, _ = refiner(s["img"], _perturb(s["T"], 2.0, rng.normal(size=6) / np.sqrt(6) * [1, 1, 1, 0.05, 0.05, 0.05]))
         assert np.all(np.isfinite(np.asarray(res.T_world_root)))
     assert eqx.debug.get_num_traces(refine_pose_region) == before

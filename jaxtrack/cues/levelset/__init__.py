@@ -22,6 +22,7 @@ from ._host import region_crop as region_crop
 from ._matching import closest_point_matches as closest_point_matches
 from ._matching import regularised_matches as regularised_matches
 from ._matching import zero_level_points as zero_level_points
+from ._redistance import band_sdf as band_sdf
 from ._redistance import contour_pixels as contour_pixels
 from ._redistance import nearest_seed_points as nearest_seed_points
 from ._redistance import redistance as redistance

@@ -73,22 +73,22 @@ def region_params(crop_shape: tuple[int, int] = (256, 256), dtype=jnp.float32, *
         ValueError: for an unknown field or a negative value.
     """
     area = float(crop_shape[0] * crop_shape[1])
-    values = dict(
-        lam=0.05,
-        nu=0.001 * area**0.7,
-        epsilon=1.0,
-        eta=0.1,
-        cfl=0.9,
-        max_step=0.5,
-        rho=12.0,
-        kappa=0.05,
-        sigma_min=5.0,
-        min_match=0.05,
-        max_match=40.0,
-        alpha_match=10.0,
-        settle_rotation=1e-4,
-        settle_translation=1e-2,
-    )
+    values = {
+        "lam": 0.05,
+        "nu": 0.001 * area**0.7,
+        "epsilon": 1.0,
+        "eta": 0.1,
+        "cfl": 0.9,
+        "max_step": 0.5,
+        "rho": 12.0,
+        "kappa": 0.05,
+        "sigma_min": 5.0,
+        "min_match": 0.05,
+        "max_match": 15.0,
+        "alpha_match": 10.0,
+        "settle_rotation": 5e-4,
+        "settle_translation": 0.05,
+    }
     for name, value in overrides.items():
         if name not in values:
             raise ValueError(f"region_params: unknown parameter {name!r}; choose from {sorted(values)}")

@@ -94,11 +94,12 @@ class RegionRefiner:
         margin: pixels of context around the projected model.
     """
 
-    def __init__(self, mesh: Mesh, cameras: Camera, model: KinematicModel | None = None, config: RegionConfig = RegionConfig(),
+    def __init__(self, mesh: Mesh, cameras: Camera, model: KinematicModel | None = None, config: RegionConfig | None = None,
                  params: RegionParams | None = None, margin: int = 24, cull_backfaces: bool = False):
         self.mesh, self.cameras = mesh, _as_rig(cameras)
         self.model = rigid_model(mesh.vertices.dtype) if model is None else model
-        self.config, self.params, self.margin = config, params, margin
+        self.config = RegionConfig() if config is None else config
+        self.params, self.margin = params, margin
         self.cull_backfaces = cull_backfaces
         self.plan: RasterPlan | None = None
         self.state: RegionState | None = None

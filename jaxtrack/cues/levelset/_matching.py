@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 
 from ...image import sample_bilinear, warp_bilinear
-from ._redistance import contour_pixels, nearest_seed_points
+from ._redistance import BAND, contour_pixels, nearest_seed_points
 
 
 def _central_gradient(phi):
@@ -48,7 +48,7 @@ def closest_point_matches(phi0, phi):
     Returns zeros everywhere if Φ has no zero level.
     """
     seeds = contour_pixels(phi)
-    near = nearest_seed_points(seeds)  # (H, W, 2) (y, x)
+    near = nearest_seed_points(seeds, BAND)  # (H, W, 2) (y, x); matches longer than the band are outliers
     h, w = phi.shape
     iy = jnp.clip(near[..., 0], 0, h - 1).astype(jnp.int32)
     ix = jnp.clip(near[..., 1], 0, w - 1).astype(jnp.int32)

@@ -20,18 +20,22 @@ def _shift(a, dy: int, dx: int, fill):
     return p[abs(dy) + dy : abs(dy) + dy + h, abs(dx) + dx : abs(dx) + dx + w]
 
 
-def nearest_seed_points(seeds):
+def nearest_seed_points(seeds, max_distance: int | None = None):
     """(H, W, 2) (y, x) of the nearest True pixel of `seeds` for every pixel (1e9 where none).
 
     Args:
         seeds: (H, W) bool.
+        max_distance: if given (static), the flooding starts with the largest power-of-two step
+            below it: exact within about that distance of a seed, fewer rounds (the level set only
+            needs a band). Pixels farther away may get a farther seed or none (1e9).
     """
     h, w = seeds.shape
     gy, gx = jnp.meshgrid(jnp.arange(h, dtype=jnp.float32), jnp.arange(w, dtype=jnp.float32), indexing="ij")
     grid = jnp.stack([gy, gx], -1)
     nearest = jnp.where(seeds[..., None], grid, _FAR)
     steps, k = [], 1
-    while k < max(h, w):
+    limit = max(h, w) if max_distance is None else min(max(h, w), int(max_distance))
+    while k < limit:
         steps.append(k)
         k *= 2
     for step in steps[::-1] + [1]:
@@ -61,17 +65,29 @@ def contour_pixels(phi):
     return differs
 
 
-def redistance(phi):
-    """Signed distance with the zero level of Φ, keeping Φ's own values in the band |Φ| < 1.
+BAND = 16  # px: level-set functions are signed distances out to here and clipped beyond
 
-    Outside the band Φ becomes ±(distance to the nearest pixel of the other sign − ½), the
-    convention of `jaxtrack.image.silhouette_sdf`; one jump-flooding pass over the contour pixels.
+
+def band_sdf(inside, band: int = BAND):
+    """Signed distance (H, W) of a boolean region, positive inside, clipped to ±band.
+
+    One jump flooding from the pixels on either side of the boundary, limited to the band: the
+    nearest boundary pixel sits ~½ px from the zero level, so |Φ| = distance + ½ (the convention of
+    `jaxtrack.image.silhouette_sdf`, which floods twice over the whole image).
     """
+    phi = jnp.where(inside, 1.0, -1.0)
     seeds = contour_pixels(phi)
-    h, w = phi.shape
+    h, w = inside.shape
     gy, gx = jnp.meshgrid(jnp.arange(h, dtype=jnp.float32), jnp.arange(w, dtype=jnp.float32), indexing="ij")
-    near = nearest_seed_points(seeds)
-    dist = jnp.sqrt((near[..., 0] - gy) ** 2 + (near[..., 1] - gx) ** 2).astype(phi.dtype)
-    # The nearest contour pixel sits ~½ px from the zero level on either side of it.
-    sdf = jnp.where(phi > 0, 1.0, -1.0) * (dist + 0.5)
+    near = nearest_seed_points(seeds, band)
+    dist = jnp.sqrt((near[..., 0] - gy) ** 2 + (near[..., 1] - gx) ** 2)
+    return jnp.where(inside, 1.0, -1.0) * jnp.minimum(dist + 0.5, float(band))
+
+
+def redistance(phi, band: int = BAND):
+    """Signed distance with the zero level of Φ (clipped to ±band), keeping Φ's own values in |Φ| < 1.
+
+    Keeping the band |Φ| < 1 keeps the sub-pixel position of the zero level.
+    """
+    sdf = band_sdf(phi > 0, band).astype(phi.dtype)
     return jnp.where(jnp.abs(phi) < 1.0, phi, jnp.where(jnp.abs(sdf) < 1.0, jnp.sign(sdf) * 1.0, sdf))

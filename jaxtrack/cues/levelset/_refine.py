@@ -21,14 +21,13 @@ import jax.numpy as jnp
 
 from ..._status import Status, first_failure, status_where
 from ...geometry import Camera, KinematicModel, se3_inverse, se3_log
-from ...image import silhouette_sdf
 from ...render import Mesh, RasterPlan, render
 from ...solve import Correspondences, Cue, SolverConfig, correspondences_from_pixels, solve_pose
 from ._densities import LocalDensities, check_grid, data_term, local_densities
 from ._energy import RegionParams, evolve, region_membership
 from ._features import feature_channels
 from ._matching import closest_point_matches, regularised_matches
-from ._redistance import contour_pixels
+from ._redistance import band_sdf, contour_pixels
 
 
 class RegionConfig(eqx.Module):
@@ -168,7 +167,7 @@ def contour_matches(phi0, phi, silhouette, p_model_img, part_img, params: Region
         d = closest_point_matches(phi0, phi)
     else:
         d = regularised_matches(phi0, phi, params.alpha_match)
-    h, w = phi.shape
+    w = phi.shape[1]
     idx = _select_slots(silhouette_contour(silhouette), capacity)
     valid = idx >= 0
     safe = jnp.where(valid, idx, 0)
@@ -180,7 +179,7 @@ def contour_matches(phi0, phi, silhouette, p_model_img, part_img, params: Region
     return pixel, pixel + dvec, p_model_img.reshape(-1, 3)[safe], part_img.reshape(-1)[safe], weight
 
 
-def segment(features, phi0, phi_init, densities: LocalDensities, params: RegionParams, config: RegionConfig = RegionConfig()):
+def segment(features, phi0, phi_init, densities: LocalDensities, params: RegionParams, config: RegionConfig | None = None):
     """Level-set segmentation of one crop (eq. 11-13) with the given densities; then new densities.
 
     Args:
@@ -190,6 +189,7 @@ def segment(features, phi0, phi_init, densities: LocalDensities, params: RegionP
     Returns:
         (Φ (h, w), `LocalDensities` re-estimated from H(Φ)).
     """
+    config = RegionConfig() if config is None else config
     f = config.density_factor
     force = data_term(features, densities, f)
     phi = evolve(phi_init, phi0, force, params, config.levelset_iterations, config.redistance_every)
@@ -239,7 +239,7 @@ def refine_pose_region(problem: RegionProblem, images, offsets, state: RegionSta
     def per_camera(cam, feats, phi_prev, dens, has_dens, first, T, theta):
         out = render(mesh, cam, T, theta, model, problem.plan)
         sil = out.face_id >= 0
-        phi0 = silhouette_sdf(sil).astype(dtype)
+        phi0 = band_sdf(sil).astype(dtype)
         own = local_densities(feats, region_membership(phi0), params.rho, params.kappa, params.sigma_min, f)
         dens = jax.tree.map(lambda a, b: jnp.where(has_dens, a, b), dens, own)
         phi, new_dens = segment(feats, phi0, phi0, dens, params, config)
@@ -247,8 +247,8 @@ def refine_pose_region(problem: RegionProblem, images, offsets, state: RegionSta
         return phi0, phi, new_dens, matches, out.overflow, jnp.any(sil)
 
     def round_(carry):
-        T, theta, phi, dens, has_dens, it, _, status, _, _, _ = carry
-        phi0, phi, dens, (pixel, _target, p_model, part, weight), overflow, visible = jax.vmap(
+        T, theta, phi, dens, has_dens, it = carry[:6]
+        phi0, phi, dens, (_, _target, p_model, part, weight), overflow, visible = jax.vmap(
             per_camera, in_axes=(0, 0, 0, 0, 0, None, None, None)
         )(cams, features, phi, dens, has_dens, it == 0, T, theta)
         target = _target + offsets[:, None, ::-1].astype(dtype)
