@@ -35,7 +35,6 @@ from jaxtrack.cues.levelset import (
 )
 from jaxtrack.cues.levelset._refine import crop_camera
 from jaxtrack.geometry import make_camera, rigid_model, se3_exp
-
 from jaxtrack.render import make_mesh, render
 from jaxtrack.solve import Cue, SolverConfig, correspondences_from_pixels, solve_pose
 from jaxtrack.synth import SynthConfig, render_sequence
@@ -102,7 +101,7 @@ def main():
     from jaxtrack.cues.levelset._refine import contour_matches
 
     cm = jax.jit(lambda p: contour_matches(phi0, p, sil, out.p_model, out.part_id, params, config.capacity))
-    pixel, target, pm, part, wgt = cm(phi)
+    _, target, pm, part, wgt = cm(phi)
     corr = correspondences_from_pixels(cam, target + jnp.asarray([x0, y0], jnp.float32), jnp.zeros_like(part), pm, part, wgt,
                                        undistort=False, cue=Cue.REGION)
     solve = jax.jit(lambda c: solve_pose(model, c, T0j, None, SolverConfig(max_steps=config.solver_steps)))
@@ -122,8 +121,10 @@ def main():
         "# Region-cue speed",
         "",
         "Command: `python experiments/bench_region.py`  ",
-        f"Machine: {platform.machine()}, {jax.devices()[0].platform}, JAX {jax.__version__}, float32, one camera, "
-        f"{cfg.width}x{cfg.height} frame, teapot {width_px} px wide, crop {h}x{w}, start θ = 10 (Fig. 6 twist).",
+        (
+            f"Machine: {platform.machine()}, {jax.devices()[0].platform}, JAX {jax.__version__}, float32, one camera, "
+            f"{cfg.width}x{cfg.height} frame, teapot {width_px} px wide, crop {h}x{w}, start θ = 10 (Fig. 6 twist)."
+        ),
         "",
         "| quantity | value |",
         "|---|---:|",
