@@ -67,7 +67,10 @@ def occlusion_run(preset: str, frames: int, seed: int | None, size: tuple[int, i
         cfg = dataclasses.replace(cfg, seed=seed)
     seq = render_sequence(cfg)
     mesh = make_mesh(seq["mesh"].vertices, seq["mesh"].faces)
-    cams = [jt.make_camera(seq["K"], width, height, R_cam_world=T[0, :3, :3], t_cam_world=T[0, :3, 3]) for T in seq["T_cam_world"]]
+    # World = camera 0 of each frame (a moving camera carries the whole rig, fixed relative to camera 0).
+    T_c0_world = seq["T_cam_world"][0][0]
+    rel = [T[0] @ np.linalg.inv(T_c0_world) for T in seq["T_cam_world"]]
+    cams = [jt.make_camera(seq["K"], width, height, R_cam_world=T[:3, :3], t_cam_world=T[:3, 3]) for T in rel]
     rig = stack_cameras(cams)
     renderers = [Renderer(mesh, c) for c in cams]
     # Texels of about a pixel at the working distance.
@@ -79,12 +82,12 @@ def occlusion_run(preset: str, frames: int, seed: int | None, size: tuple[int, i
         obs = observe_texels(atlas, images, rendered.depth, rig, T_world_obj, params, config=config)
         found = detect_occlusion(atlas, appearance, obs, rendered, params, config)
         occluded = found.occluded & ~first
-        return found.occluded, update_appearance(appearance, obs, occluded, params)
+        return found.occluded, update_appearance(appearance, obs, occluded, params, found.near_occlusion & ~first)
 
     appearance = init_appearance(atlas)
     tp = fp = fn = 0
     times = []
-    T_world_obj_all = np.linalg.inv(seq["T_cam_world"][0]) @ seq["T_cam_obj"][0]
+    T_world_obj_all = seq["T_cam_obj"][0]
     for k in range(frames):
         T = jnp.asarray(T_world_obj_all[k], jnp.float32)
         rendered = jax.tree.map(lambda *x: jnp.stack(x), *[r(T) for r in renderers])

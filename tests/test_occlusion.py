@@ -49,7 +49,7 @@ def _make_step(atlas, camera):
         obs = observe_texels(atlas, images, rendered.depth, cams, T, params, config=config)
         found = detect_occlusion(atlas, appearance, obs, rendered, params, config)
         occluded = found.occluded & ~first & protect
-        return found, obs, update_appearance(appearance, obs, occluded, params)
+        return found, obs, update_appearance(appearance, obs, occluded, params, found.near_occlusion & ~first & protect)
 
     return step
 
@@ -166,6 +166,10 @@ def test_update_rule_eq10():
     new = update_appearance(app, obs, occluded, params)
     np.testing.assert_allclose(new.texture, [0.875 * 100 + 0.125 * 180, 100.0, 30.0, 50.0], rtol=1e-6)
     np.testing.assert_array_equal(new.seen, [True, True, True, True])
+    # Near a detected occlusion an unseen texel waits; seen texels update as before.
+    held = update_appearance(app, obs, occluded, params, hold_new=jnp.ones_like(occluded))
+    np.testing.assert_allclose(held.texture, [0.875 * 100 + 0.125 * 180, 100.0, 0.0, 50.0], rtol=1e-6)
+    np.testing.assert_array_equal(held.seen, [True, True, False, True])
     # Two cameras: the mean of the cameras that see the texel unoccluded.
     obs2 = jax.tree.map(lambda x: jnp.concatenate([x, x]), obs)
     obs2 = eqx.tree_at(lambda o: o.value, obs2, jnp.array([[180.0, 180.0, 30.0, 90.0], [100.0, 0.0, 50.0, 0.0]]))

@@ -78,6 +78,7 @@ class OcclusionConfig(eqx.Module):
         depth_tolerance: relative depth slack of the texel visibility test in the update.
         edge_margin: observations closer than this (pixels) to the silhouette edge do not update the
             model (the blurred image mixes in the background there).
+        init_margin: pixels around detected occlusions where unseen texels wait to be initialised.
         gain_window: odd side of the window of the local gain estimate (pixels).
         blur_sigma: Gaussian σ (pixels) applied to the image before it is read at the texels; it
             removes aliasing and pixel noise that the averaging model (eq. 10) does not have, which
@@ -88,6 +89,7 @@ class OcclusionConfig(eqx.Module):
     window: int = eqx.field(static=True, default=9)
     depth_tolerance: float = eqx.field(static=True, default=5e-3)
     edge_margin: int = eqx.field(static=True, default=2)
+    init_margin: int = eqx.field(static=True, default=16)
     gain_window: int = eqx.field(static=True, default=31)
     blur_sigma: float = eqx.field(static=True, default=1.0)
 
@@ -128,6 +130,9 @@ class OcclusionMap(eqx.Module):
         model_image: (H, W) the model's grey appearance M(x) (0 where unknown or off the object).
         known: (H, W) bool object pixel whose texel has been seen.
         visible: (H, W) bool non-occluded object pixels (the SIFT cue's detection mask).
+        near_occlusion: (H, W) bool within `init_margin` pixels of an occluded pixel: unseen texels
+            are not initialised there (a face turning into view behind an occluder would otherwise
+            learn the occluder as its appearance; it still counts as unknown, not occluded).
     """
 
     distance: jax.Array
@@ -136,6 +141,7 @@ class OcclusionMap(eqx.Module):
     model_image: jax.Array
     known: jax.Array
     visible: jax.Array
+    near_occlusion: jax.Array
 
 
 class TexelObservation(eqx.Module):
@@ -259,6 +265,7 @@ def _detect_one(atlas, appearance, observation, rendered, params, config):
         model_image=model,
         known=known,
         visible=covered & ~occluded,
+        near_occlusion=box_sum(occluded.astype(model.dtype)[..., None], config.init_margin)[..., 0] > 0.5,
     )
 
 
@@ -287,7 +294,7 @@ def detect_occlusion(
 
 
 def update_appearance(
-    appearance: AppearanceModel, observation: TexelObservation, occluded, params: OcclusionParams
+    appearance: AppearanceModel, observation: TexelObservation, occluded, params: OcclusionParams, hold_new=None
 ) -> AppearanceModel:
     """f_t = (1 − rate) f_{t−1} + rate · I where visible and not occluded (eq. 10); untouched elsewhere.
 
@@ -299,10 +306,16 @@ def update_appearance(
         observation: `observe_texels` of frames t at χ_t (leading C axis).
         occluded: (C, H, W) bool from `detect_occlusion` (all False for the initialising frame).
         params: `rate` is used.
+        hold_new: optional (C, H, W) bool where unseen texels are not initialised yet
+            (`OcclusionMap.near_occlusion`).
     """
-    occ_flat = occluded.reshape(occluded.shape[0], -1)
-    occ_at = jnp.take_along_axis(occ_flat, observation.pixel, axis=1)
-    usable = observation.reliable & ~occ_at
+
+    def at_texels(image_map):
+        return jnp.take_along_axis(image_map.reshape(image_map.shape[0], -1), observation.pixel, axis=1)
+
+    usable = observation.reliable & ~at_texels(occluded)
+    if hold_new is not None:
+        usable = usable & (appearance.seen[None, :] | ~at_texels(hold_new))
     n = jnp.sum(usable, 0)
     observed = n > 0
     mean = jnp.sum(jnp.where(usable, observation.value, 0.0), 0) / jnp.maximum(n, 1)
