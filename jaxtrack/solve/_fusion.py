@@ -17,7 +17,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ..solve import Correspondences, Cue
+from ._correspondences import Correspondences, Cue
 
 
 class CueWeights(eqx.Module):
