@@ -23,6 +23,7 @@ from jaxtrack.cues.occlusion import (
     update_appearance,
 )
 from jaxtrack.cues.occlusion._appearance import _detect_one
+from jaxtrack.cues.occlusion._histogram import box_sum
 from jaxtrack.geometry import stack_cameras
 from jaxtrack.render import Renderer, make_mesh
 from jaxtrack.synth import PRESETS, render_sequence
@@ -175,6 +176,15 @@ def test_update_rule_eq10():
     obs2 = eqx.tree_at(lambda o: o.value, obs2, jnp.array([[180.0, 180.0, 30.0, 90.0], [100.0, 0.0, 50.0, 0.0]]))
     new2 = update_appearance(app, obs2, jnp.concatenate([occluded, occluded * False]), params)
     np.testing.assert_allclose(new2.texture, [0.875 * 100 + 0.125 * 140, 0.875 * 100 + 0.125 * 0.0, 40.0, 50.0], rtol=1e-6)
+
+
+@pytest.mark.parametrize("radius", [0, 1, 2, 4, 15])
+def test_box_sum_matches_brute_force(radius):
+    y = np.random.default_rng(radius).normal(size=(19, 23, 2))
+    padded = np.pad(y, ((radius, radius), (radius, radius), (0, 0)))
+    side = 2 * radius + 1
+    ref = np.array([[padded[i : i + side, j : j + side].sum((0, 1)) for j in range(23)] for i in range(19)])
+    np.testing.assert_allclose(jax.jit(box_sum, static_argnums=1)(jnp.asarray(y), radius), ref, atol=1e-12)
 
 
 def test_histogram_distance_properties():

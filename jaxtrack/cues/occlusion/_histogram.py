@@ -28,14 +28,25 @@ def soft_bins(gray, bins: int):
 
 
 def _box_sum_axis(x, radius: int, axis: int):
-    """Σ_{k=i−r}^{i+r} x[k] along `axis` (zeros outside), by a cumulative sum."""
+    """Σ_{k=i−r}^{i+r} x[k] along `axis` (zeros outside), by doubling: sums over 1, 2, 4, ... samples
+    combined along the binary digits of 2r + 1, O(log r) adds of static slices. (A cumulative sum
+    measured 2.5-5x slower on XLA:CPU, 2r + 1 shifted adds 2.5x slower at r = 15.)"""
     n = x.shape[axis]
+    length = 2 * radius + 1
     pad = [(0, 0)] * x.ndim
-    pad[axis] = (radius + 1, radius)
-    c = jnp.cumsum(jnp.pad(x, pad), axis=axis)
-    hi = jnp.take(c, jnp.arange(2 * radius + 1, n + 2 * radius + 1), axis=axis)
-    lo = jnp.take(c, jnp.arange(0, n), axis=axis)
-    return hi - lo
+    pad[axis] = (radius, radius)
+    block = jnp.pad(x, pad)  # block[i] = sum of `size` padded samples from i
+    size, offset, out = 1, 0, None
+    while True:
+        if length & size:
+            term = jax.lax.slice_in_dim(block, offset, offset + n, axis=axis)
+            out = term if out is None else out + term
+            offset += size
+        if 2 * size > length:
+            return out
+        m = block.shape[axis]
+        block = jax.lax.slice_in_dim(block, 0, m - size, axis=axis) + jax.lax.slice_in_dim(block, size, m, axis=axis)
+        size *= 2
 
 
 def box_sum(x, radius: int):
