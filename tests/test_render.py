@@ -214,3 +214,26 @@ def test_silhouette_sdf_matches_exact_distance_transform():
     assert ((phi > 0) == sil).all()
     err = np.abs(phi - exact)
     assert err.max() < 1.0 and err.mean() < 0.01, (err.max(), err.mean())
+
+
+def test_tile_overlap_never_misses_a_covered_pixel():
+    from jaxtrack.render._raster import _tile_corners, _tile_overlap
+
+    rng = np.random.default_rng(3)
+    tile, width, height = 16, 96, 64
+    tri = rng.uniform([-20, -20], [width + 20, height + 20], size=(200, 3, 2))
+    tri[:50] = tri[:50, :1] + rng.normal(scale=6.0, size=(50, 3, 2))  # small ones too
+    corners = _tile_corners(width, height, tile)
+    hit = np.asarray(_tile_overlap(jnp.asarray(tri), jnp.asarray(corners), tile))
+    # Brute force: a tile is needed iff one of its pixel centres lies inside the triangle.
+    y, x = np.mgrid[0:height, 0:width]
+    a, b, c = tri[:, 0, None, None], tri[:, 1, None, None], tri[:, 2, None, None]
+
+    def edge(p, q):
+        return (q[..., 0] - p[..., 0]) * (y - p[..., 1]) - (q[..., 1] - p[..., 1]) * (x - p[..., 0])
+
+    e0, e1, e2 = edge(b, c), edge(c, a), edge(a, b)
+    inside = ((e0 >= 0) & (e1 >= 0) & (e2 >= 0)) | ((e0 <= 0) & (e1 <= 0) & (e2 <= 0))
+    needed = np.stack([inside[:, y0 : y0 + tile, x0 : x0 + tile].any((1, 2)) for x0, y0 in corners], 1)
+    assert not (needed & ~hit).any()  # no covered tile is skipped
+    assert hit.sum() < 1.1 * needed.sum() and hit.sum() < 0.5 * hit.size  # and few are tested in vain

@@ -279,13 +279,14 @@ def _tile_corners(width: int, height: int, tile: int) -> np.ndarray:
 def _tile_overlap(tri, corners, tile: int):
     """(N, G) bool: triangle n (screen vertices (N, 3, 2)) may cover a pixel centre of tile g.
 
-    Exact separating-axis test of the triangle against the rectangle spanned by the tile's pixel
-    centres (the rectangle's two axes, then the triangle's three edge normals); degenerate triangles
-    count as overlapping (the rasteriser's own test drops them).
+    Exact separating-axis test of the triangle against the rectangle of the tile's pixel centres
+    grown by half a pixel (so rounding never drops a centre the rasteriser would draw): the
+    rectangle's two axes, then the triangle's three edge normals. Degenerate triangles count as
+    overlapping (the rasteriser's own test drops them).
     """
-    x0 = corners[:, 0].astype(tri.dtype)
-    y0 = corners[:, 1].astype(tri.dtype)
-    x1, y1 = x0 + (tile - 1), y0 + (tile - 1)
+    x0 = corners[:, 0].astype(tri.dtype) - 0.5
+    y0 = corners[:, 1].astype(tri.dtype) - 0.5
+    x1, y1 = x0 + tile, y0 + tile
     tmin, tmax = jnp.min(tri, axis=1), jnp.max(tri, axis=1)
     hit = (tmin[:, 0:1] <= x1) & (tmax[:, 0:1] >= x0) & (tmin[:, 1:2] <= y1) & (tmax[:, 1:2] >= y0)
     a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
