@@ -10,10 +10,11 @@ row's Jacobian has a closed form. Under a left increment (v, ω) of the root, δ
 row is [b_k, a × b_k]; a joint j on the part's path moves a by ω'_j × a + v'_j with the joint twist
 ξ'_j = Ad(T_world_parent(j)) ξ_j carried to the world, giving the entry ξ'_j · [b_k, a × b_k].
 
-All D = 6 + J columns are stacked into one (D, N, 2) Jacobian built with array operations over the
-joints, and H = Σ w JᵀJ is one contraction. The traced program therefore has the same size for any
-joint count: XLA's compile time stays nearly flat in J (a body has 20-30 joints), where building H
-from D(D+1)/2 separately traced column products grew with D² (measured in experiments/bench_pose.py).
+The J joint columns are built at once with array operations over the joints, stacked (J, N, 2), and
+their blocks of H are contractions; the 6x6 root block keeps its 21 fused products. The traced
+program therefore has the same size for any joint count: XLA's compile time stays nearly flat in J
+(a body has 20-30 joints), where building H from D(D+1)/2 separately traced column products and a
+Python loop over joints grew with D² (measured in experiments/bench_pose.py).
 """
 
 from __future__ import annotations
@@ -73,6 +74,31 @@ def plane_residuals(
     return _plane_residuals(a, normals, offsets)
 
 
+def _residuals_and_columns(
+    model: KinematicModel,
+    T_world_root: jax.Array,
+    theta: jax.Array,
+    p_model: jax.Array,
+    part: jax.Array,
+    normals: jax.Array,
+    offsets: jax.Array,
+):
+    """s (N, 2), the six root columns as separate (N, 2) arrays, and the joint columns (J, N, 2) or None."""
+    T_parts = part_transforms(model, T_world_root, theta)
+    a = [c[..., None] for c in _world_point_columns(model, T_parts, p_model, part)]  # 3 x (N, 1)
+    b = [normals[..., c] for c in range(3)]  # 3 x (N, 2)
+    s = b[0] * a[0] + b[1] * a[1] + b[2] * a[2] - offsets
+    cross = [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+    root_columns = b + cross
+    if not model.num_joints:
+        return s, root_columns, None
+    anchors = T_parts[model.joint_parent_part]  # (J, 4, 4)
+    twists_world = jnp.einsum("jab,jb->ja", se3_adjoint(anchors), model.joint_twists.astype(s.dtype))  # (J, 6)
+    on_path = model.part_joints[part].astype(s.dtype)  # (N, J)
+    joint_columns = jnp.einsum("jc,cnk->jnk", twists_world, jnp.stack(root_columns)) * on_path.T[:, :, None]
+    return s, root_columns, joint_columns
+
+
 def plane_residuals_and_jacobian(
     model: KinematicModel,
     T_world_root: jax.Array,
@@ -87,22 +113,10 @@ def plane_residuals_and_jacobian(
     Columns 0-5 are the root's left increment (v, ω): [b_k, a × b_k], written per coordinate.
     Column 6 + j is joint j's world twist ξ'_j applied to those six, times whether joint j lies on
     the point's path; one contraction over the six twist coordinates makes all J columns at once.
-    The column axis leads because XLA:CPU then streams over the long row axis (measured ~2x faster
-    under vmap than a trailing column axis).
     """
-    T_parts = part_transforms(model, T_world_root, theta)
-    a = [c[..., None] for c in _world_point_columns(model, T_parts, p_model, part)]  # 3 x (N, 1)
-    b = [normals[..., c] for c in range(3)]  # 3 x (N, 2)
-    s = b[0] * a[0] + b[1] * a[1] + b[2] * a[2] - offsets
-    cross = (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
-    root_columns = jnp.stack([*b, *cross])  # (6, N, 2)
-    if not model.num_joints:
-        return s, root_columns
-    anchors = T_parts[model.joint_parent_part]  # (J, 4, 4)
-    twists_world = jnp.einsum("jab,jb->ja", se3_adjoint(anchors), model.joint_twists.astype(s.dtype))  # (J, 6)
-    on_path = model.part_joints[part].astype(s.dtype)  # (N, J)
-    joint_columns = jnp.einsum("jc,cnk->jnk", twists_world, root_columns) * on_path.T[:, :, None]  # (J, N, 2)
-    return s, jnp.concatenate([root_columns, joint_columns])
+    s, root_columns, joint_columns = _residuals_and_columns(model, T_world_root, theta, p_model, part, normals, offsets)
+    columns = jnp.stack(root_columns)
+    return s, columns if joint_columns is None else jnp.concatenate([columns, joint_columns])
 
 
 def plane_normal_equations(
@@ -117,15 +131,31 @@ def plane_normal_equations(
 ):
     """Gauss-Newton normal equations of eq. 5 at (T_world_root, Θ).
 
+    The 6x6 root block is 21 elementwise products summed over the rows, which XLA:CPU fuses into one
+    pass without storing the columns (the fastest form for a rigid object with many points, measured
+    in experiments/bench_pose.py); its size does not depend on J. The joint blocks are contractions
+    of the stacked (J, 2N) joint columns, one einsum each whatever J is.
+
     Returns:
         H = Σ w JᵀJ (D, D), g = Σ w Jᵀ s (D,), cost = Σ w |s|² (= Σ w |r|² of eq. 4), D = 6 + J.
     """
-    s, columns = plane_residuals_and_jacobian(model, T_world_root, theta, p_model, part, normals, offsets)
-    rows = columns.reshape(columns.shape[0], -1)  # (D, 2N): both planes of every correspondence
-    w_rows = jnp.broadcast_to(weight[:, None], s.shape).reshape(-1)
-    weighted = rows * w_rows
-    s_rows = s.reshape(-1)
+    s, root_columns, joint_columns = _residuals_and_columns(model, T_world_root, theta, p_model, part, normals, offsets)
+    w = weight[:, None]
+    weighted_root = [w * c for c in root_columns]
+    upper = {(d, e): jnp.sum(weighted_root[d] * root_columns[e]) for d in range(6) for e in range(d, 6)}
+    H = jnp.stack([jnp.stack([upper[min(d, e), max(d, e)] for e in range(6)]) for d in range(6)])
+    g = jnp.stack([jnp.sum(wc * s) for wc in weighted_root])
+    cost = jnp.sum(w * s * s)
+    if joint_columns is None:
+        return H, g, cost
+    num_joints = joint_columns.shape[0]
+    joint_rows = joint_columns.reshape(num_joints, -1)  # (J, 2N): both planes of every correspondence
+    weighted_joint = joint_rows * jnp.broadcast_to(w, s.shape).reshape(-1)
+    root_rows = jnp.stack(root_columns).reshape(6, -1)
     # HIGHEST: on accelerators the default may round the products to bf16/tf32, too coarse for H.
-    H = jnp.einsum("dr,er->de", weighted, rows, precision=jax.lax.Precision.HIGHEST)
-    g = jnp.einsum("dr,r->d", weighted, s_rows, precision=jax.lax.Precision.HIGHEST)
-    return H, g, jnp.sum(w_rows * s_rows * s_rows)
+    highest = jax.lax.Precision.HIGHEST
+    H_joint_root = jnp.einsum("jr,cr->jc", weighted_joint, root_rows, precision=highest)  # (J, 6)
+    H_joint = jnp.einsum("jr,kr->jk", weighted_joint, joint_rows, precision=highest)  # (J, J)
+    g_joint = jnp.einsum("jr,r->j", weighted_joint, s.reshape(-1), precision=highest)
+    H = jnp.block([[H, H_joint_root.T], [H_joint_root, H_joint]])
+    return H, jnp.concatenate([g, g_joint]), cost
