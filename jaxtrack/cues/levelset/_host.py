@@ -14,7 +14,7 @@ from ...geometry import (
     select_camera,
     stack_cameras,
 )
-from ...render import Mesh, RasterPlan, face_extents, plan_raster
+from ...render import Mesh, RasterPlan, face_extents, merge_plans, plan_raster
 from ..flow import ROI_SIZES
 from ._densities import check_grid
 from ._energy import RegionParams, region_params
@@ -113,12 +113,8 @@ class RegionRefiner:
         ext = np.stack([face_extents(self.mesh, select_camera(rig, c), T, theta, self.model, self.cull_backfaces)
                         for c in range(self.num_cameras)])
         new = plan_raster(ext, margin=2.0, cull_backfaces=self.cull_backfaces)
-        if self.plan is not None:
-            caps = dict(zip(self.plan.patch_sizes, self.plan.capacities))
-            for s, c in zip(new.patch_sizes, new.capacities):
-                caps[s] = max(c, caps.get(s, 0))
-            sizes = tuple(sorted(caps))
-            new = RasterPlan(sizes, tuple(caps[s] for s in sizes), cull_backfaces=self.cull_backfaces)
+        if self.plan is not None:  # never shrink (merge_plans keeps the tile pool for huge faces)
+            new = merge_plans(self.plan, new)
         self.plan = new
 
     def check_images(self, images) -> np.ndarray:
