@@ -15,6 +15,7 @@ from ._energy import local_flow_energy as local_flow_energy
 from ._energy import middlebury_params as middlebury_params
 from ._energy import rigid_params as rigid_params
 from ._solver import FlowConfig as FlowConfig
+from ._solver import FlowInputs as FlowInputs
 from ._solver import FlowResult as FlowResult
 from ._solver import MotionTensor as MotionTensor
 from ._solver import compute_flow as compute_flow
@@ -24,4 +25,5 @@ from ._solver import median_filter_flow as median_filter_flow
 from ._solver import middlebury_config as middlebury_config
 from ._solver import motion_tensor as motion_tensor
 from ._solver import prepare_image as prepare_image
+from ._solver import prepare_inputs as prepare_inputs
 from ._solver import refine_flow as refine_flow
