@@ -4,8 +4,12 @@ The channels are modelled as independent, p_i(x) = Π_j p_ij(I_j(x)) (eq. 12), s
 needs to carry information the others do not. The texture channel is the square root of the
 smoothed trace of the linear structure tensor, sqrt(K_σ * |∇I|²), on the grey image: a local
 "edge energy" that separates textured from flat regions of similar colour. (The paper uses the
-nonlinear structure tensor or the local scale of Brox and Weickert; this linear variant is cheaper
-and measured in `tests/test_levelset.py::test_texture_channel_effect`.)
+nonlinear structure tensor or the local scale of Brox and Weickert; this linear variant is cheaper.)
+
+Measured (flat-coloured teapot, 320x240, a 3-px shift, ten one-round refinements): with the texture
+channel the depth drifted to 13.5 mm, without it to 4.0 mm — the linear tensor's edge energy is high
+on both sides of the object's boundary, so rim pixels look like textured background. It is therefore
+off by default (`RegionConfig.texture`); an edge-preserving (nonlinear) texture feature is left to do.
 """
 
 from __future__ import annotations
