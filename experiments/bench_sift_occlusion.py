@@ -54,6 +54,8 @@ from jaxtrack.render import Renderer, make_mesh
 from jaxtrack.solve import solve_pose
 from jaxtrack.synth import PRESETS, render_sequence
 
+jax.config.update("jax_enable_x64", True)  # the SIFT geometry and pose solves in float64; occlusion stays float32
+
 RESULTS = pathlib.Path(__file__).resolve().parent / "results"
 SHARED = pathlib.Path(__file__).resolve().parents[2] / "shared" / "data"
 OCCLUSION_PRESETS = ("occluded-box", "teabox-large-motion", "noisy-moving-camera", "stereo-noise", "turntable-truck", "turntable-teapot")
