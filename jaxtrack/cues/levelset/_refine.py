@@ -22,7 +22,16 @@ import jax.numpy as jnp
 from ..._status import Status, first_failure, status_where
 from ...geometry import Camera, KinematicModel, se3_inverse, se3_log
 from ...render import Mesh, RasterPlan, render
-from ...solve import Correspondences, Cue, SolverConfig, correspondences_from_pixels, solve_pose
+from ...solve import (
+    Correspondences,
+    Cue,
+    CueWeights,
+    SolverConfig,
+    concatenate_correspondences,
+    correspondences_from_pixels,
+    fuse_cue_weights,
+    solve_pose,
+)
 from ._densities import LocalDensities, check_grid, data_term, local_densities
 from ._energy import RegionParams, evolve, region_membership
 from ._features import feature_channels
@@ -208,7 +217,17 @@ class RegionProblem(eqx.Module):
 
 
 @eqx.debug.assert_max_traces(max_traces=None)  # counts traces (`eqx.debug.get_num_traces`), never fails
-def refine_pose_region(problem: RegionProblem, images, offsets, state: RegionState, params: RegionParams, T_init, theta_init):
+def refine_pose_region(
+    problem: RegionProblem,
+    images,
+    offsets,
+    state: RegionState,
+    params: RegionParams,
+    T_init,
+    theta_init,
+    extra: Correspondences | None = None,
+    weights: CueWeights | None = None,
+):
     """Region-only refinement of χ = (ξ, Θ) on one frame of C cameras. Jittable, pure.
 
     Args:
@@ -218,9 +237,13 @@ def refine_pose_region(problem: RegionProblem, images, offsets, state: RegionSta
         state: `RegionState` carried from the previous frame.
         params: `RegionParams`.
         T_init: (4, 4) initial root pose (model → world); theta_init: (J,) initial joint angles.
+        extra: correspondences of other cues (the tracker's flow and SIFT rows, raw weights) solved
+            together with the contour rows in every round; their weights follow Section V
+            (`fuse_cue_weights`), so they scale with the number of contour matches.
+        weights: user factors of that fusion (default 1).
 
     Returns:
-        `RegionResult`.
+        `RegionResult`; its `correspondences` are the last round's fused set (contour rows first).
     """
     config, model, mesh = problem.config, problem.model, problem.mesh
     f = config.density_factor
@@ -257,6 +280,8 @@ def refine_pose_region(problem: RegionProblem, images, offsets, state: RegionSta
             problem.cameras, target.reshape(-1, 2), cam_index.reshape(-1), p_model.reshape(-1, 3), part.reshape(-1),
             weight.reshape(-1), undistort=False, cue=Cue.REGION,
         )
+        if extra is not None:
+            corr = fuse_cue_weights(concatenate_correspondences(corr, extra), CueWeights() if weights is None else weights)
         sol = solve_pose(model, corr, T, theta, solver)
         moved = se3_log(sol.T_world_root @ se3_inverse(T))
         settled = (
@@ -284,6 +309,8 @@ def refine_pose_region(problem: RegionProblem, images, offsets, state: RegionSta
         part=jnp.zeros((rows,), jnp.int32), camera=jnp.zeros((rows,), jnp.int32), pixel=jnp.zeros((rows, 2), dtype),
         weight=jnp.zeros((rows,), dtype), cue=jnp.full((rows,), int(Cue.REGION), jnp.int32),
     )
+    if extra is not None:
+        empty = concatenate_correspondences(empty, extra.with_weight(jnp.zeros_like(extra.weight)))
     phi_start = jnp.zeros((num_cams,) + tuple(crop_shape), dtype)
     carried = jax.tree.map(lambda a: a.astype(dtype), carried)
     init = (
