@@ -53,7 +53,7 @@ class OcclusionParams(eqx.Module):
 
 
 def occlusion_params(
-    threshold=0.25, rate=0.125, min_known=0.25, min_cos=0.3, max_gain=1.5, dtype=jnp.float32
+    threshold=0.25, rate=0.125, min_known=0.25, min_cos=0.3, max_gain=1.25, dtype=jnp.float32
 ) -> OcclusionParams:
     """`OcclusionParams` with the paper's values by default.
 
