@@ -17,7 +17,6 @@ import contextlib
 import dataclasses
 import time
 
-import cv2
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -29,6 +28,8 @@ from ..flow import roi_crop
 @contextlib.contextmanager
 def opencv_threads(count: int = 1):
     """Run OpenCV with `count` threads inside the block, restoring the previous setting after."""
+    import cv2  # lazily: `import jaxtrack` must not load OpenCV
+
     previous = cv2.getNumThreads()
     cv2.setNumThreads(count)
     try:
@@ -69,6 +70,8 @@ class SiftConfig:
             raise ValueError("SiftConfig.search_px and margin must be ≥ 0")
 
     def detector(self):
+        import cv2  # lazily: `import jaxtrack` must not load OpenCV
+
         return cv2.SIFT_create(
             nOctaveLayers=self.n_octave_layers,
             contrastThreshold=self.contrast_threshold,
@@ -100,6 +103,8 @@ class SiftMatches(eqx.Module):
 
 
 def _gray_u8(image) -> np.ndarray:
+    import cv2  # lazily: `import jaxtrack` must not load OpenCV
+
     img = np.asarray(image)
     if img.ndim == 3:
         img = cv2.cvtColor(img.astype(np.float32), cv2.COLOR_RGB2GRAY)
@@ -138,6 +143,8 @@ def match_descriptors(desc_t, desc_t1, ratio: float = 0.6):
     Returns:
         (index_t (m,), index_t1 (m,), ratio (m,)) sorted by increasing ratio (best first).
     """
+    import cv2  # lazily: `import jaxtrack` must not load OpenCV
+
     none = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
     if len(desc_t) == 0 or len(desc_t1) < 2:  # the ratio test needs a second neighbour
         return none
@@ -155,6 +162,8 @@ def match_descriptors(desc_t, desc_t1, ratio: float = 0.6):
 
 
 def _dilate(mask, radius: int):
+    import cv2  # lazily: `import jaxtrack` must not load OpenCV
+
     if radius <= 0:
         return mask
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
