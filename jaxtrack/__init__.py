@@ -12,6 +12,7 @@ from . import geometry as geometry
 from . import image as image
 from . import render as render
 from . import solve as solve
+from . import track as track
 from ._status import Status as Status
 from ._status import StatusError as StatusError
 from ._status import check_status as check_status
@@ -33,6 +34,10 @@ from .solve import SolverConfig as SolverConfig
 from .solve import estimate_pose as estimate_pose
 from .solve import make_correspondences as make_correspondences
 from .solve import solve_pose as solve_pose
+from .track import Tracker as Tracker
+from .track import TrackerConfig as TrackerConfig
+from .track import TrackerParams as TrackerParams
+from .track import track_sequence as track_sequence
 
 __version__ = "0.1.0"
 
@@ -40,16 +45,20 @@ __version__ = "0.1.0"
 # (PEP 562): `jaxtrack.io`, `jaxtrack.synth` and `from jaxtrack.synth import ...` work as before, but a
 # plain `import jaxtrack` no longer pays for them.
 _LAZY_SUBPACKAGES = ("io", "synth")
+# Top-level names that live in a lazy subpackage.
+_LAZY_NAMES = {"read_sequence": "io"}
 
 
 def __getattr__(name: str):
     if name in _LAZY_SUBPACKAGES:
         return _importlib.import_module(f".{name}", __name__)  # the import binds it as an attribute
+    if name in _LAZY_NAMES:
+        return getattr(_importlib.import_module(f".{_LAZY_NAMES[name]}", __name__), name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def __dir__() -> list:
-    return sorted(set(globals()) | set(_LAZY_SUBPACKAGES))
+    return sorted(set(globals()) | set(_LAZY_SUBPACKAGES) | set(_LAZY_NAMES))
 
 
 if _TYPE_CHECKING:

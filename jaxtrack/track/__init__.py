@@ -1,4 +1,4 @@
-"""The tracker: adaptive cue fusion (Section V), the per-frame step and the sequence loop; evaluation."""
+"""The tracker (Section V): adaptive cue fusion, the jitted per-frame step, the sequence loop; evaluation."""
 
 from ..solve import CueWeights as CueWeights  # fusion acts on correspondence sets: it lives in solve
 from ..solve import fuse_cue_weights as fuse_cue_weights
@@ -8,3 +8,15 @@ from ._evaluate import model_diameter as model_diameter
 from ._evaluate import pose_errors as pose_errors
 from ._evaluate import precision_recall as precision_recall
 from ._evaluate import success_mask as success_mask
+from ._sequence import TrackingRun as TrackingRun
+from ._sequence import track_sequence as track_sequence
+from ._sequence import write_tracking_results as write_tracking_results
+from ._step import FrameResult as FrameResult
+from ._step import TrackerConfig as TrackerConfig
+from ._step import TrackerParams as TrackerParams
+from ._step import TrackerSetup as TrackerSetup
+from ._step import TrackerState as TrackerState
+from ._step import motion_correspondences as motion_correspondences
+from ._step import track_step as track_step
+from ._tracker import Tracker as Tracker
+from ._tracker import default_params as default_params

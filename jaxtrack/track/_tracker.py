@@ -1,0 +1,265 @@
+"""The tracker's host edge: validation, crops, raster plans, SIFT on the host, the jitted step.
+
+`Tracker` holds what a sequence fixes (mesh, model, cameras, configuration, parameters) and turns a
+stream of frames into poses:
+
+    tracker = jt.Tracker(mesh, cameras)                      # rigid; pass model= for a chain
+    state = tracker.start(frames0, T_world_root0)            # appearance model from the known pose
+    for frames in stream:
+        state, result, info = tracker.step(state, frames)    # result.status, result.confidence
+
+Between frames, on the host: the crop around the object (one static size class for all cameras,
+chosen from the projected model at t with a margin that grows with the last motion), SIFT detection
+and matching (OpenCV, one thread), and a re-plan of the rasteriser when a render overflowed (the
+frame is then redone). Everything else is `track_step`, one compiled program per configuration,
+crop size class and raster plan.
+"""
+
+from __future__ import annotations
+
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._status import Status
+from ..cues.flow import articulated_params, rigid_params
+from ..cues.levelset import initial_state, projected_boxes, region_crop, region_params
+from ..cues.occlusion import (
+    OcclusionParams,
+    init_appearance,
+    make_texture_atlas,
+    observe_texels,
+    occlusion_params,
+    update_appearance,
+)
+from ..cues.sift import SiftConfig, SiftMatches, sift_matches, sift_params
+from ..geometry import Camera, KinematicModel, rigid_model, select_camera, stack_cameras
+from ..render import Mesh, RasterPlan, face_extents, merge_plans, plan_raster, render
+from ..solve import CueWeights
+from ._step import FrameResult, TrackerConfig, TrackerParams, TrackerSetup, TrackerState, track_step
+
+_track_step_jit = eqx.filter_jit(track_step)
+
+
+def default_params(
+    model: KinematicModel, crop_shape: tuple[int, int] = (256, 256), dtype=jnp.float32, weights: CueWeights | None = None,
+    occlusion: OcclusionParams | None = None,
+) -> TrackerParams:
+    """The method's parameters: quadratic flow smoothness α = 800 for a rigid object, robust α = 50 for
+    a chain (β = 12 / 3), region λ = 0.05, ν = 0.001 |Ω|^0.7 (Ω the crop), ρ = 12, occlusion 1/4 and 1/8."""
+    flow = rigid_params() if model.num_joints == 0 else articulated_params()
+    flow = jax.tree.map(lambda a: jnp.asarray(a, dtype), flow)
+    beta = 3.0 if flow.robust_smoothness else 12.0
+    return TrackerParams(
+        weights=jax.tree.map(lambda a: jnp.asarray(a, dtype), CueWeights() if weights is None else weights),
+        flow=flow,
+        flow_beta=jnp.asarray(beta, dtype),
+        region=region_params(crop_shape, dtype),
+        sift=sift_params(dtype=dtype),
+        occlusion=occlusion_params(dtype=dtype) if occlusion is None else occlusion,
+        lost_iou=jnp.asarray(0.5, dtype),
+        uncertain_iou=jnp.asarray(0.8, dtype),
+        inlier_px=jnp.asarray(3.0, dtype),
+    )
+
+
+def _as_rig(cameras: Camera) -> Camera:
+    if not isinstance(cameras, Camera):
+        raise TypeError(f"cameras must be a jaxtrack Camera (or a stacked rig), got {type(cameras).__name__}")
+    return cameras if cameras.K.ndim == 3 else stack_cameras([cameras])
+
+
+class Tracker:
+    """Tracks one object (rigid, or parts on a kinematic chain) seen by 1-4 calibrated cameras.
+
+    Args:
+        mesh: the model (mm; part per vertex for a chain).
+        cameras: one `Camera` or a stacked rig sharing one image size.
+        model: kinematic tree (`rigid_model()` if None).
+        config: static settings (`TrackerConfig`: cue subset, iterations, capacities).
+        params: numeric parameters (`default_params` if None; ν follows the crop area unless given).
+        sift: host SIFT settings.
+        margin: pixels of context around the projected model in each crop.
+        texel_mm: appearance-model texel size (default: about one pixel at the first pose).
+    """
+
+    def __init__(self, mesh: Mesh, cameras: Camera, model: KinematicModel | None = None, config: TrackerConfig | None = None,
+                 params: TrackerParams | None = None, sift: SiftConfig | None = None, margin: int = 24,
+                 texel_mm: float | None = None):
+        if not isinstance(mesh, Mesh):
+            raise TypeError(f"mesh must be a jaxtrack.render.Mesh (see make_mesh / io.load_mesh), got {type(mesh).__name__}")
+        self.mesh = mesh
+        self.cameras = _as_rig(cameras)
+        self.dtype = self.cameras.K.dtype
+        self.model = rigid_model(self.dtype) if model is None else model
+        if int(np.max(np.asarray(mesh.vertex_part))) >= self.model.num_parts:
+            raise ValueError(f"mesh has parts up to {int(np.max(np.asarray(mesh.vertex_part)))} but the model has "
+                             f"{self.model.num_parts} part(s)")
+        self.config = TrackerConfig() if config is None else config
+        self.user_params = params
+        self.sift = SiftConfig() if sift is None else sift
+        self.margin = int(margin)
+        self.texel_mm = texel_mm
+        self.plan: RasterPlan | None = None
+        self.atlas = None
+        self.replans = 0
+        self.last_motion_px = 0.0
+
+    @property
+    def num_cameras(self) -> int:
+        return self.cameras.K.shape[0]
+
+    # --- host helpers -----------------------------------------------------------------------------
+    def check_frames(self, frames, name: str = "frames") -> np.ndarray:
+        """(C, H, W, 3) float32 frames from (C, H, W[, 3]) or, for one camera, (H, W[, 3]); errors name the problem."""
+        frames = np.asarray(frames)
+        H, W, C = self.cameras.height, self.cameras.width, self.num_cameras
+        if C == 1 and frames.ndim in (2, 3) and frames.shape[:2] == (H, W):
+            frames = frames[None]
+        if frames.ndim == 3 and frames.shape[0] == C:
+            frames = frames[..., None]
+        if frames.ndim != 4 or frames.shape[:3] != (C, H, W) or frames.shape[-1] not in (1, 3):
+            raise ValueError(f"{name} must have shape ({C}, {H}, {W}[, 3]) for this rig of {C} camera(s) of "
+                             f"{W}x{H}, got {frames.shape}")
+        if frames.shape[-1] == 1:
+            frames = np.repeat(frames, 3, axis=-1)
+        frames = frames.astype(np.float32)
+        if not np.all(np.isfinite(frames)):
+            raise ValueError(f"{name} contain non-finite pixel values")
+        return frames
+
+    def _check_pose(self, T, theta):
+        T = np.asarray(T, np.float64)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise ValueError(f"T_world_root must be a finite (4, 4) pose, got shape {T.shape}")
+        R = T[:3, :3]
+        if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0 or not np.allclose(T[3], [0, 0, 0, 1]):
+            raise ValueError("T_world_root is not a rigid transform (rotation block not orthonormal with det +1)")
+        J = self.model.num_joints
+        theta = np.zeros(J) if theta is None else np.asarray(theta, np.float64)
+        if theta.shape != (J,) or not np.all(np.isfinite(theta)):
+            raise ValueError(f"theta must be ({J},) finite joint angles, got shape {theta.shape}")
+        return jnp.asarray(T, self.dtype), jnp.asarray(theta, self.dtype)
+
+    def _replan(self, T, theta):
+        ext = np.stack([face_extents(self.mesh, select_camera(self.cameras, c), T, theta, self.model)
+                        for c in range(self.num_cameras)])
+        new = plan_raster(ext, margin=2.0 * 1.5**self.replans)
+        self.plan = new if self.plan is None else merge_plans(self.plan, new)
+        self.replans += 1
+
+    def crop(self, T, theta) -> tuple[np.ndarray, tuple[int, int]]:
+        """Crop offsets (C, 2) and the shared static crop size around the object at (T, Θ)."""
+        boxes = projected_boxes(self.mesh, self.cameras, T, theta, self.model)
+        if not np.all(np.isfinite(boxes)):
+            return None, None
+        H, W = self.cameras.height, self.cameras.width
+        # Keep what is on screen; a box entirely off screen still gets a crop at the border.
+        boxes[:, [0, 2]] = np.clip(boxes[:, [0, 2]], 0, W - 1)
+        boxes[:, [1, 3]] = np.clip(boxes[:, [1, 3]], 0, H - 1)
+        margin = self.margin + int(np.ceil(1.5 * self.last_motion_px))
+        return region_crop(boxes, (H, W), margin, self.config.region.density_factor)
+
+    def params_for(self, crop_shape) -> TrackerParams:
+        """The parameters used for a crop size: the user's, or the defaults with ν = 0.001 |Ω|^0.7."""
+        if self.user_params is not None:
+            return self.user_params
+        return default_params(self.model, crop_shape, self.dtype)
+
+    # --- tracking ---------------------------------------------------------------------------------
+    def start(self, frames, T_world_root, theta=None) -> TrackerState:
+        """The state at the first frame, whose pose is known: the appearance model sees it unoccluded.
+
+        Raises:
+            ValueError: malformed frames or pose, or an object behind a camera / outside every image.
+        """
+        frames = self.check_frames(frames, "frames")
+        T, theta = self._check_pose(T_world_root, theta)
+        boxes = projected_boxes(self.mesh, self.cameras, T, theta, self.model)
+        if not np.all(np.isfinite(boxes)):
+            raise ValueError("the initial pose puts the object behind a camera (T_world_root)")
+        H, W = self.cameras.height, self.cameras.width
+        on_screen = (boxes[:, 2] >= 0) & (boxes[:, 0] < W) & (boxes[:, 3] >= 0) & (boxes[:, 1] < H)
+        if not np.any(on_screen):
+            raise ValueError("the initial pose puts the object outside every camera's image (T_world_root)")
+        if self.plan is None:
+            self._replan(T, theta)
+        if self.atlas is None:
+            texel = self.texel_mm
+            if texel is None:  # about one pixel at the first pose
+                depth = float(np.asarray((self.cameras.T_cam_world[0] @ T)[2, 3]))
+                texel = max(0.25, depth / float(np.asarray(self.cameras.K[0, 0, 0])))
+            self.atlas = make_texture_atlas(self.mesh, texel_mm=texel)
+        sil, appearance = self._initial_appearance(jnp.asarray(frames), T, theta)
+        f = self.config.region.density_factor
+        region = initial_state(self.num_cameras, H, W, 3 + int(self.config.region.texture), f, self.dtype)
+        self.last_motion_px = 0.0
+        return TrackerState(
+            T_world_root=T, theta=theta, images=jnp.asarray(frames, self.dtype),
+            data_weight=jnp.ones((self.num_cameras, H, W), self.dtype), visible=sil, region=region, appearance=appearance,
+        )
+
+    def _initial_appearance(self, frames, T, theta):
+        ren = jax.vmap(lambda cam: render(self.mesh, cam, T, theta, self.model, self.plan))(self.cameras)
+        params = self.params_for((self.cameras.height, self.cameras.width)).occlusion
+        obs = observe_texels(self.atlas, frames, ren.depth, self.cameras, T, params, theta, self.model,
+                             self.config.occlusion_config)
+        appearance = update_appearance(init_appearance(self.atlas, self.dtype), obs, jnp.zeros(ren.depth.shape, bool), params)
+        return ren.face_id >= 0, appearance
+
+    def matches(self, state: TrackerState, frames: np.ndarray, timings: dict | None = None) -> SiftMatches:
+        """Host SIFT matches t → t+1 inside the visible object region of frame t (empty without the cue)."""
+        cap = self.sift.capacity
+        if "sift" not in self.config.cues:
+            z = jnp.zeros((self.num_cameras, cap, 2), self.dtype)
+            return SiftMatches(z, z, jnp.zeros((self.num_cameras, cap), bool))
+        return sift_matches(np.asarray(state.images), frames, np.asarray(state.visible), self.sift, timings=timings,
+                            dtype=self.dtype)
+
+    def step(self, state: TrackerState, frames, params: TrackerParams | None = None) -> tuple[TrackerState, FrameResult, dict]:
+        """Track frames t+1 from `state` at t. Never raises for tracking failures (see `FrameResult.status`).
+
+        Returns:
+            (state at t+1, `FrameResult`, info: host timings in seconds and the crop).
+
+        Raises:
+            ValueError: malformed frames.
+        """
+        frames = self.check_frames(frames, "frames")
+        timings: dict = {}
+        start = time.perf_counter()
+        offsets, crop_shape = self.crop(np.asarray(state.T_world_root), np.asarray(state.theta))
+        if offsets is None:  # the object went behind a camera: keep the pose, report it out of view
+            lost = eqx.tree_at(lambda s: s.images, state, jnp.asarray(frames, self.dtype))
+            timings["total_s"] = time.perf_counter() - start
+            return lost, self._out_of_view(state), {"timings": timings, "offsets": None, "crop_shape": None}
+        matches = self.matches(state, frames, timings)
+        params = self.params_for(crop_shape) if params is None else params
+        frames_j = jnp.asarray(frames, self.dtype)
+        step_start = time.perf_counter()
+        for _ in range(3):
+            setup = TrackerSetup(self.mesh, self.model, self.cameras, self.atlas, self.plan, self.config)
+            new_state, result = _track_step_jit(setup, state, frames_j, matches, jnp.asarray(offsets), params, crop_shape)
+            if int(result.status) != Status.RENDER_OVERFLOW:
+                break
+            self._replan(result.T_world_root, result.theta)
+        jax.block_until_ready(result)
+        timings["step_s"] = time.perf_counter() - step_start
+        timings["total_s"] = time.perf_counter() - start
+        moved = np.asarray(projected_boxes(self.mesh, self.cameras, result.T_world_root, result.theta, self.model))
+        before = projected_boxes(self.mesh, self.cameras, state.T_world_root, state.theta, self.model)
+        if np.all(np.isfinite(moved)) and np.all(np.isfinite(before)):
+            self.last_motion_px = float(np.max(np.abs(moved - before)))
+        return new_state, result, {"timings": timings, "offsets": offsets, "crop_shape": crop_shape}
+
+    def _out_of_view(self, state: TrackerState) -> FrameResult:
+        C, dt = self.num_cameras, self.dtype
+        return FrameResult(
+            T_world_root=state.T_world_root, theta=state.theta, T_pred=state.T_world_root, theta_pred=state.theta,
+            status=jnp.asarray(Status.OUT_OF_VIEW, jnp.int32), confidence=jnp.zeros((), dt), iou=jnp.zeros((C,), dt),
+            counts=jnp.zeros((C, 3), jnp.int32), motion_inliers=jnp.zeros((), dt), occluded_fraction=jnp.zeros((C,), dt),
+            iterations=jnp.zeros((), jnp.int32), region_phi=-jnp.ones((C, 1, 1), dt),
+        )
