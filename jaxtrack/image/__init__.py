@@ -18,3 +18,5 @@ from ._pyramid import resize_bilinear as resize_bilinear
 from ._pyramid import upsample_flow as upsample_flow
 from ._sampling import sample_bilinear as sample_bilinear
 from ._sampling import warp_bilinear as warp_bilinear
+from ._windows import crop_window as crop_window
+from ._windows import paste_window as paste_window

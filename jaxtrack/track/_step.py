@@ -48,6 +48,7 @@ from ..cues.sift import (
     sift_correspondences,
 )
 from ..geometry import Camera, KinematicModel
+from ..image import crop_window, paste_window
 from ..render import Mesh, RasterPlan, render
 from ..solve import (
     Correspondences,
@@ -186,18 +187,6 @@ class FrameResult(eqx.Module):
     region_phi: jax.Array
 
 
-def _crop(a, offset, crop_shape):
-    zero = jnp.zeros((), jnp.int32)
-    start = (offset[0].astype(jnp.int32), offset[1].astype(jnp.int32)) + (zero,) * (a.ndim - 2)
-    return jax.lax.dynamic_slice(a, start, tuple(crop_shape) + a.shape[2:])
-
-
-def _paste(full, part, offset):
-    zero = jnp.zeros((), jnp.int32)
-    start = (offset[0].astype(jnp.int32), offset[1].astype(jnp.int32)) + (zero,) * (part.ndim - 2)
-    return jax.lax.dynamic_update_slice(full, part, start)
-
-
 def _flatten_cameras(corr: Correspondences) -> Correspondences:
     """A (C, N) stack of per-camera sets → one set of C·N rows."""
     return jax.tree.map(lambda a: a.reshape((-1,) + a.shape[2:]), corr)
@@ -228,9 +217,9 @@ def motion_correspondences(setup: TrackerSetup, state: TrackerState, frames, mat
     sil_t = ren_t.face_id >= 0
     parts = []
     if "flow" in config.cues:
-        img_t = jax.vmap(_crop, in_axes=(0, 0, None))(state.images, offsets, crop_shape)
-        img_t1 = jax.vmap(_crop, in_axes=(0, 0, None))(frames, offsets, crop_shape)
-        r_t = jax.vmap(_crop, in_axes=(0, 0, None))(state.data_weight, offsets, crop_shape)
+        img_t = jax.vmap(crop_window, in_axes=(0, 0, None))(state.images, offsets, crop_shape)
+        img_t1 = jax.vmap(crop_window, in_axes=(0, 0, None))(frames, offsets, crop_shape)
+        r_t = jax.vmap(crop_window, in_axes=(0, 0, None))(state.data_weight, offsets, crop_shape)
         flow = jax.vmap(lambda a, b, r, om: flow_core(a, b, params.flow, config.flow, r, om, None, params.flow_beta, dtype))(
             img_t, img_t1, r_t, sil_t
         )
@@ -297,7 +286,7 @@ def track_step(
         T_pred, theta_pred = T_t, theta_t
 
     # 3. Refinement: region correspondences + the motion rows, adaptive weights, until settled.
-    crops_t1 = jax.vmap(_crop, in_axes=(0, 0, None))(frames, offsets, crop_shape)
+    crops_t1 = jax.vmap(crop_window, in_axes=(0, 0, None))(frames, offsets, crop_shape)
     if "region" in config.cues:
         problem = RegionProblem(setup.mesh, model, setup.cameras, setup.plan, config.region)
         res = refine_pose_region(problem, crops_t1, offsets, state.region, params.region, T_pred, theta_pred,
@@ -326,8 +315,8 @@ def track_step(
         appearance = state.appearance
         occluded = jnp.zeros_like(sil_t1)
     full = state.data_weight.shape[1:]
-    data_weight = jax.vmap(lambda o, off: _paste(jnp.ones(full, dtype), jnp.where(o, 0.0, 1.0).astype(dtype), off))(occluded, offsets)
-    visible = jax.vmap(lambda v, off: _paste(jnp.zeros(full, bool), v, off))(sil_t1 & ~occluded, offsets)
+    data_weight = jax.vmap(lambda o, off: paste_window(jnp.ones(full, dtype), jnp.where(o, 0.0, 1.0).astype(dtype), off))(occluded, offsets)
+    visible = jax.vmap(lambda v, off: paste_window(jnp.zeros(full, bool), v, off))(sil_t1 & ~occluded, offsets)
 
     # Evidence: silhouette agreement, motion-cue agreement, visibility.
     seg = phi > 0
