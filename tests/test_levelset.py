@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxtrack._status import Status
 from jaxtrack.cues.levelset import (
     RegionConfig,
     RegionRefiner,
@@ -188,9 +189,10 @@ def test_closest_point_matches_circle():
     err = np.linalg.norm(d[ys, xs] - (tgt - src), axis=1)
     # Measured: median 0.005 px; a few pixels fall back to the jump-flooding guess (≤ 2.6 px off).
     assert np.median(err) < 0.02 and np.mean(err < 0.1) > 0.95 and np.max(err) < 3.0, (np.median(err), np.sort(err)[-5:])
-    # Identical contours give matches below the default `min_match` (zero weight: no information).
+    # Identical contours give exactly zero matches (source and target are projected by the same
+    # operator; before, 162 of 263 contour pixels of a box silhouette got non-zero matches).
     same = np.asarray(closest_point_matches(jnp.asarray(phi0), jnp.asarray(phi0)))[ys, xs]
-    assert np.max(np.linalg.norm(same, axis=1)) < float(region_params().min_match)
+    assert np.max(np.abs(same)) == 0.0
 
 
 def test_regularised_matches_ignore_spike():
@@ -362,6 +364,21 @@ def test_refine_rigid_two_cameras(rigid_scene):
     e1 = _mean_vertex_error(s["mesh"], model, np.asarray(res.T_world_root), np.zeros(0), s["T"], np.zeros(0))
     assert int(np.sum(np.asarray(res.correspondences.camera)[np.asarray(res.correspondences.weight) > 0] == 1)) >= 0
     assert e1 < 0.25 * e0 and e1 < 1.0, (e0, e1, int(res.status))
+
+
+def test_refine_from_truth_settles_near_truth(rigid_scene):
+    """Regression: refinement from the true pose must stay there and settle. Measured on this
+    frame (/tmp/hF/truthtest.py): before the fixes 0.649 mm mean vertex error after 30 rounds
+    without settling (non-zero matches for identical contours, zero-length matches dropped);
+    after, 0.117 mm, settled in 10 rounds."""
+    s = rigid_scene
+    refiner = RegionRefiner(s["mesh"], s["cam"])
+    res, _ = refiner(s["img"], s["T"])
+    e1 = _mean_vertex_error(s["mesh"], refiner.model, np.asarray(res.T_world_root), np.zeros(0), s["T"], np.zeros(0))
+    assert int(res.status) == int(Status.OK) and int(res.iterations) < 20, (int(res.status), int(res.iterations))
+    assert e1 < 0.25, e1
+    # Zero-length matches are kept (they anchor the pose): every contour row carries weight.
+    assert int(res.num_matches) > 100
 
 
 def test_refine_two_joint_chain():

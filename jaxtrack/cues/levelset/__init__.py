@@ -12,6 +12,7 @@ from ._energy import heaviside as heaviside
 from ._energy import levelset_energy as levelset_energy
 from ._energy import levelset_update as levelset_update
 from ._energy import region_membership as region_membership
+from ._energy import region_memberships as region_memberships
 from ._energy import region_params as region_params
 from ._energy import time_step as time_step
 from ._features import feature_channels as feature_channels

@@ -81,7 +81,7 @@ def check_grid(shape, factor: int):
         raise ValueError(f"region crop {shape[0]}x{shape[1]} must be divisible by the density grid factor {factor}")
 
 
-def local_densities(features, weight_object, rho, kappa, sigma_min, factor: int = 4) -> LocalDensities:
+def local_densities(features, weight_object, rho, kappa, sigma_min, factor: int = 4, weight_background=None) -> LocalDensities:
     """Local Gaussian densities of object and background (eq. 12) on the coarse grid. Jittable.
 
     Args:
@@ -92,6 +92,7 @@ def local_densities(features, weight_object, rho, kappa, sigma_min, factor: int 
         kappa: weight of the global moments blended in where a region is locally absent.
         sigma_min: floor on σ (feature units).
         factor: coarse-grid factor (static; 1 = exact).
+        weight_background: (H, W) membership of the background (default 1 − weight_object).
 
     Returns:
         `LocalDensities` with (2, H/factor, W/factor, K) fields.
@@ -99,7 +100,8 @@ def local_densities(features, weight_object, rho, kappa, sigma_min, factor: int 
     h, w, k = features.shape
     check_grid((h, w), factor)
     dtype = features.dtype
-    weights = jnp.stack([weight_object, 1.0 - weight_object], -1).astype(dtype)  # (H, W, 2)
+    weight_background = 1.0 - weight_object if weight_background is None else weight_background
+    weights = jnp.stack([weight_object, weight_background], -1).astype(dtype)  # (H, W, 2)
     stack = jnp.concatenate(
         [weights[..., None], weights[..., None] * features[:, :, None, :], weights[..., None] * features[:, :, None, :] ** 2],
         axis=-1,

@@ -33,7 +33,7 @@ from ...solve import (
     solve_pose,
 )
 from ._densities import LocalDensities, check_grid, data_term, local_densities
-from ._energy import RegionParams, evolve, region_membership
+from ._energy import RegionParams, evolve, region_memberships
 from ._features import feature_channels
 from ._matching import closest_point_matches, regularised_matches
 from ._redistance import band_sdf, contour_pixels
@@ -188,6 +188,17 @@ def contour_matches(phi0, phi, silhouette, p_model_img, part_img, params: Region
     return pixel, pixel + dvec, p_model_img.reshape(-1, 3)[safe], part_img.reshape(-1)[safe], weight
 
 
+def _densities(features, phi, band, params: RegionParams, factor: int) -> LocalDensities:
+    """Local densities of both regions of Φ without the band |Φ| < `band` (`region_memberships`).
+
+    Used for Φ0 (first round) and for each round's segmentation (carried to the next round): the
+    segmentation near a wrong Φ0 keeps part of the background strip, so densities from its plain
+    membership re-learn the strip as object (measured: 67 mm off after 30 rounds from a 6 px shift).
+    """
+    w_obj, w_bg = region_memberships(phi, band)
+    return local_densities(features, w_obj, params.rho, params.kappa, params.sigma_min, factor, weight_background=w_bg)
+
+
 def segment(features, phi0, phi_init, densities: LocalDensities, params: RegionParams, config: RegionConfig | None = None):
     """Level-set segmentation of one crop (eq. 11-13) with the given densities; then new densities.
 
@@ -202,7 +213,7 @@ def segment(features, phi0, phi_init, densities: LocalDensities, params: RegionP
     f = config.density_factor
     force = data_term(features, densities, f)
     phi = evolve(phi_init, phi0, force, params, config.levelset_iterations, config.redistance_every)
-    new = local_densities(features, region_membership(phi), params.rho, params.kappa, params.sigma_min, f)
+    new = _densities(features, phi, params.density_band, params, f)
     return phi, new
 
 
@@ -263,7 +274,7 @@ def refine_pose_region(
         out = render(mesh, cam, T, theta, model, problem.plan)
         sil = out.face_id >= 0
         phi0 = band_sdf(sil).astype(dtype)
-        own = local_densities(feats, region_membership(phi0), params.rho, params.kappa, params.sigma_min, f)
+        own = _densities(feats, phi0, params.density_band, params, f)
         dens = jax.tree.map(lambda a, b: jnp.where(has_dens, a, b), dens, own)
         phi, new_dens = segment(feats, phi0, phi0, dens, params, config)
         matches = contour_matches(phi0, phi, sil, out.p_model, out.part_id, params, config.capacity, config.matching)
