@@ -170,7 +170,8 @@ def contour_matches(phi0, phi, silhouette, p_model_img, part_img, params: Region
     Returns:
         (pixel (capacity, 2) x, y of the contour point where its model point projects, target
         (capacity, 2) the matched point on Φ's zero level, p_model (capacity, 3), part (capacity,),
-        weight (capacity,): 1 for a usable match, 0 for padding, zero-length and outlier matches).
+        weight (capacity,): 1 for a usable match, 0 for padding, outliers and matches shorter than
+        min_match (default 0: zero-length matches keep their weight and anchor the pose)).
     """
     if matching == "closest":
         d = closest_point_matches(phi0, phi)
