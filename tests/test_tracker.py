@@ -51,8 +51,9 @@ def tracked(sequence, tracker):
 
 @pytest.mark.xfail(
     strict=True,
-    reason="the region cue's segmentation settles about a pixel inside the true contour (a depth/rotation bias, "
-    "issue 9 notes); measured 4.4° rotation error after the first frame at 160x120",
+    reason="contour, flow and SIFT rows leave a depth + out-of-plane rotation combination weakly observed on this "
+    "small textured box, and the region refinement creeps along it (issue 9 notes); measured 2.7° rotation error "
+    "after the first frame at 160x120",
 )
 def test_tracks_a_short_textured_sequence(sequence, tracked):
     results, _, _, _ = tracked
