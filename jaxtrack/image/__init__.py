@@ -7,6 +7,7 @@ shape-defining arguments (σ, window size, pyramid shapes) are static Python val
 from ._derivatives import as_channels as as_channels
 from ._derivatives import image_gradients as image_gradients
 from ._distance import nearest_seed_distance as nearest_seed_distance
+from ._distance import nearest_seed_points as nearest_seed_points
 from ._distance import silhouette_sdf as silhouette_sdf
 from ._filters import gaussian_blur as gaussian_blur
 from ._filters import gaussian_kernel as gaussian_kernel

@@ -23,15 +23,22 @@ def _shift(a, dy: int, dx: int, fill):
     return p[abs(dy) + dy : abs(dy) + dy + h, abs(dx) + dx : abs(dx) + dx + w]
 
 
-def nearest_seed_distance(seeds):
-    """Distance (H, W) from every pixel centre to the nearest True pixel of `seeds` (1e9 if none)."""
+def nearest_seed_points(seeds, max_distance: int | None = None):
+    """(H, W, 2) (y, x) of the nearest True pixel of `seeds` for every pixel (1e9 where none).
+
+    Args:
+        seeds: (H, W) bool.
+        max_distance: if given (static), the flooding starts with the largest power-of-two step
+            below it: exact within about that distance of a seed, fewer rounds (a level set only needs
+            a band). Pixels farther away may get a farther seed or none (1e9).
+    """
     h, w = seeds.shape
     gy, gx = jnp.meshgrid(jnp.arange(h, dtype=jnp.float32), jnp.arange(w, dtype=jnp.float32), indexing="ij")
     grid = jnp.stack([gy, gx], -1)
     nearest = jnp.where(seeds[..., None], grid, _FAR)
-    steps = []
-    k = 1
-    while k < max(h, w):
+    steps, k = [], 1
+    limit = max(h, w) if max_distance is None else min(max(h, w), int(max_distance))
+    while k < limit:
         steps.append(k)
         k *= 2
     for step in steps[::-1] + [1]:
@@ -47,7 +54,15 @@ def nearest_seed_distance(seeds):
                 best = jnp.where(better[..., None], cand, best)
                 best_d = jnp.where(better, d, best_d)
         nearest = best
-    return jnp.sqrt(jnp.sum((nearest - grid) ** 2, -1))
+    return nearest
+
+
+def nearest_seed_distance(seeds):
+    """Distance (H, W) from every pixel centre to the nearest True pixel of `seeds` (1e9 if none)."""
+    h, w = seeds.shape
+    gy, gx = jnp.meshgrid(jnp.arange(h, dtype=jnp.float32), jnp.arange(w, dtype=jnp.float32), indexing="ij")
+    nearest = nearest_seed_points(seeds)
+    return jnp.sqrt(jnp.sum((nearest - jnp.stack([gy, gx], -1)) ** 2, -1))
 
 
 def silhouette_sdf(silhouette):

@@ -1,57 +1,14 @@
-"""Jump flooding with nearest-seed coordinates, and re-distancing of a level-set function.
+"""Re-distancing of a level-set function: contour pixels and band-limited signed distances.
 
-`nearest_seed_points` is the coordinate-returning twin of `jaxtrack.image.nearest_seed_distance`
-(JFA+1, Rong & Tan 2006): shape matching needs the nearest contour point itself, not only its
-distance. A candidate for `jaxtrack.image` once the region cue settles.
+Built on `jaxtrack.image.nearest_seed_points` (jump flooding that returns the nearest seed's
+coordinates, JFA+1, Rong & Tan 2006): shape matching needs the nearest contour point itself.
 """
 
 from __future__ import annotations
 
 import jax.numpy as jnp
 
-_FAR = 1e9
-
-
-def _shift(a, dy: int, dx: int, fill):
-    """b[y, x] = a[y + dy, x + dx] (fill outside)."""
-    h, w = a.shape[:2]
-    pad = [(abs(dy), abs(dy)), (abs(dx), abs(dx))] + [(0, 0)] * (a.ndim - 2)
-    p = jnp.pad(a, pad, constant_values=fill)
-    return p[abs(dy) + dy : abs(dy) + dy + h, abs(dx) + dx : abs(dx) + dx + w]
-
-
-def nearest_seed_points(seeds, max_distance: int | None = None):
-    """(H, W, 2) (y, x) of the nearest True pixel of `seeds` for every pixel (1e9 where none).
-
-    Args:
-        seeds: (H, W) bool.
-        max_distance: if given (static), the flooding starts with the largest power-of-two step
-            below it: exact within about that distance of a seed, fewer rounds (the level set only
-            needs a band). Pixels farther away may get a farther seed or none (1e9).
-    """
-    h, w = seeds.shape
-    gy, gx = jnp.meshgrid(jnp.arange(h, dtype=jnp.float32), jnp.arange(w, dtype=jnp.float32), indexing="ij")
-    grid = jnp.stack([gy, gx], -1)
-    nearest = jnp.where(seeds[..., None], grid, _FAR)
-    steps, k = [], 1
-    limit = max(h, w) if max_distance is None else min(max(h, w), int(max_distance))
-    while k < limit:
-        steps.append(k)
-        k *= 2
-    for step in steps[::-1] + [1]:
-        best = nearest
-        best_d = jnp.sum((best - grid) ** 2, -1)
-        for dy in (-step, 0, step):
-            for dx in (-step, 0, step):
-                if dy == 0 and dx == 0:
-                    continue
-                cand = _shift(nearest, dy, dx, _FAR)
-                d = jnp.sum((cand - grid) ** 2, -1)
-                better = d < best_d
-                best = jnp.where(better[..., None], cand, best)
-                best_d = jnp.where(better, d, best_d)
-        nearest = best
-    return nearest
+from ...image import nearest_seed_points
 
 
 def contour_pixels(phi):

@@ -21,6 +21,7 @@ import jax.numpy as jnp
 
 from ..._status import Status, first_failure, status_where
 from ...geometry import Camera, KinematicModel, se3_inverse, se3_log
+from ...image import crop_window, paste_window
 from ...render import Mesh, RasterPlan, render
 from ...solve import (
     Correspondences,
@@ -126,18 +127,6 @@ def crop_camera(camera: Camera, offset, crop_shape: tuple[int, int]) -> Camera:
     K = camera.K.at[..., 0, 2].add(-offset[..., 1].astype(camera.K.dtype))
     K = K.at[..., 1, 2].add(-offset[..., 0].astype(camera.K.dtype))
     return Camera(K, camera.T_cam_world, camera.dist, width=crop_shape[1], height=crop_shape[0])
-
-
-def _crop(a, offset, crop_shape):
-    zero = jnp.zeros((), jnp.int32)
-    start = (offset[0].astype(jnp.int32), offset[1].astype(jnp.int32)) + (zero,) * (a.ndim - 2)
-    return jax.lax.dynamic_slice(a, start, tuple(crop_shape) + a.shape[2:])
-
-
-def _paste(full, part, offset):
-    zero = jnp.zeros((), jnp.int32)
-    start = (offset[0].astype(jnp.int32), offset[1].astype(jnp.int32)) + (zero,) * (part.ndim - 2)
-    return jax.lax.dynamic_update_slice(full, part, start)
 
 
 def silhouette_contour(silhouette):
@@ -266,7 +255,7 @@ def refine_pose_region(
     cams = crop_camera(problem.cameras, offsets, crop_shape)
     coarse_shape = (crop_shape[0] // f, crop_shape[1] // f)
     # (2, Hc, Wc, K) per camera → crop on the coarse grid → back to (2, hc, wc, K).
-    dens0 = jax.vmap(lambda m, off: jnp.moveaxis(_crop(jnp.moveaxis(m, 0, 2), off // f, coarse_shape), 2, 0))
+    dens0 = jax.vmap(lambda m, off: jnp.moveaxis(crop_window(jnp.moveaxis(m, 0, 2), off // f, coarse_shape), 2, 0))
     carried = LocalDensities(dens0(state.densities.mean, offsets), dens0(state.densities.var, offsets))
     solver = SolverConfig(max_steps=config.solver_steps)
     num_cams = offsets.shape[0]
@@ -333,8 +322,8 @@ def refine_pose_region(
     status = first_failure(status, status_where(settled, Status.OK, Status.MAX_STEPS))
 
     # Carry the segmentation and densities in full-frame coordinates.
-    new_phi = jax.vmap(lambda full, part, off: _paste(jnp.full_like(full, -1.0), part, off))(state.phi.astype(dtype), phi, offsets)
-    paste_dens = jax.vmap(lambda full, part, off: jnp.moveaxis(_paste(jnp.moveaxis(full, 0, 2), jnp.moveaxis(part, 0, 2), off // f), 2, 0))
+    new_phi = jax.vmap(lambda full, part, off: paste_window(jnp.full_like(full, -1.0), part, off))(state.phi.astype(dtype), phi, offsets)
+    paste_dens = jax.vmap(lambda full, part, off: jnp.moveaxis(paste_window(jnp.moveaxis(full, 0, 2), jnp.moveaxis(part, 0, 2), off // f), 2, 0))
     new_state = RegionState(
         phi=new_phi,
         densities=LocalDensities(
