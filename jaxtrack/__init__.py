@@ -4,7 +4,6 @@ An implementation of Brox, Rosenhahn, Gall and Cremers, "Combined Region- and Mo
 Tracking of Rigid and Articulated Objects" (TPAMI 2010).
 """
 
-import importlib as _importlib
 from typing import TYPE_CHECKING as _TYPE_CHECKING
 
 from . import cues as cues
@@ -13,6 +12,7 @@ from . import image as image
 from . import render as render
 from . import solve as solve
 from . import track as track
+from ._lazy import lazy_exports as _lazy_exports
 from ._status import Status as Status
 from ._status import StatusError as StatusError
 from ._status import check_status as check_status
@@ -49,16 +49,7 @@ _LAZY_SUBPACKAGES = ("io", "synth")
 _LAZY_NAMES = {"read_sequence": "io"}
 
 
-def __getattr__(name: str):
-    if name in _LAZY_SUBPACKAGES:
-        return _importlib.import_module(f".{name}", __name__)  # the import binds it as an attribute
-    if name in _LAZY_NAMES:
-        return getattr(_importlib.import_module(f".{_LAZY_NAMES[name]}", __name__), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-def __dir__() -> list:
-    return sorted(set(globals()) | set(_LAZY_SUBPACKAGES) | set(_LAZY_NAMES))
+__getattr__, __dir__ = _lazy_exports(__name__, globals(), {**{m: m for m in _LAZY_SUBPACKAGES}, **_LAZY_NAMES})
 
 
 if _TYPE_CHECKING:

@@ -106,6 +106,7 @@ class Tracker:
         self.plan: RasterPlan | None = None
         self.atlas = None
         self.replans = 0
+        self._default_params: dict = {}
         self.last_motion_px = 0.0
 
     @property
@@ -151,9 +152,10 @@ class Tracker:
         self.plan = new if self.plan is None else merge_plans(self.plan, new)
         self.replans += 1
 
-    def crop(self, T, theta) -> tuple[np.ndarray, tuple[int, int]]:
-        """Crop offsets (C, 2) and the shared static crop size around the object at (T, Θ)."""
-        boxes = projected_boxes(self.mesh, self.cameras, T, theta, self.model)
+    def crop(self, T, theta, boxes: np.ndarray | None = None) -> tuple[np.ndarray, tuple[int, int]]:
+        """Crop offsets (C, 2) and the shared static crop size around the object at (T, Θ)
+        (`boxes`: its projected boxes when already computed)."""
+        boxes = projected_boxes(self.mesh, self.cameras, T, theta, self.model) if boxes is None else boxes.copy()
         if not np.all(np.isfinite(boxes)):
             return None, None
         H, W = self.cameras.height, self.cameras.width
@@ -167,7 +169,9 @@ class Tracker:
         """The parameters used for a crop size: the user's, or the defaults with ν = 0.001 |Ω|^0.7."""
         if self.user_params is not None:
             return self.user_params
-        return default_params(self.model, crop_shape, self.dtype)
+        if crop_shape not in self._default_params:  # built once per crop size, not per frame
+            self._default_params[crop_shape] = default_params(self.model, crop_shape, self.dtype)
+        return self._default_params[crop_shape]
 
     # --- tracking ---------------------------------------------------------------------------------
     def start(self, frames, T_world_root, theta=None) -> TrackerState:
@@ -231,7 +235,8 @@ class Tracker:
         frames = self.check_frames(frames, "frames")
         timings: dict = {}
         start = time.perf_counter()
-        offsets, crop_shape = self.crop(np.asarray(state.T_world_root), np.asarray(state.theta))
+        before = projected_boxes(self.mesh, self.cameras, state.T_world_root, state.theta, self.model)
+        offsets, crop_shape = self.crop(state.T_world_root, state.theta, before)
         if offsets is None:  # the object went behind a camera: keep the pose, report it out of view
             lost = eqx.tree_at(lambda s: s.images, state, jnp.asarray(frames, self.dtype))
             timings["total_s"] = time.perf_counter() - start
@@ -249,8 +254,7 @@ class Tracker:
         jax.block_until_ready(result)
         timings["step_s"] = time.perf_counter() - step_start
         timings["total_s"] = time.perf_counter() - start
-        moved = np.asarray(projected_boxes(self.mesh, self.cameras, result.T_world_root, result.theta, self.model))
-        before = projected_boxes(self.mesh, self.cameras, state.T_world_root, state.theta, self.model)
+        moved = projected_boxes(self.mesh, self.cameras, result.T_world_root, result.theta, self.model)
         if np.all(np.isfinite(moved)) and np.all(np.isfinite(before)):
             self.last_motion_px = float(np.max(np.abs(moved - before)))
         return new_state, result, {"timings": timings, "offsets": offsets, "crop_shape": crop_shape}
