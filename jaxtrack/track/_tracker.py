@@ -37,6 +37,7 @@ from ..cues.occlusion import (
 )
 from ..cues.sift import SiftConfig, SiftMatches, sift_matches, sift_params
 from ..geometry import Camera, KinematicModel, rigid_model, select_camera, stack_cameras
+from ..geometry._validate import checked_rotation
 from ..render import Mesh, RasterPlan, face_extents, merge_plans, plan_raster, render
 from ..solve import CueWeights
 from ._step import FrameResult, TrackerConfig, TrackerParams, TrackerSetup, TrackerState, track_step
@@ -136,9 +137,9 @@ class Tracker:
         T = np.asarray(T, np.float64)
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise ValueError(f"T_world_root must be a finite (4, 4) pose, got shape {T.shape}")
-        R = T[:3, :3]
-        if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0 or not np.allclose(T[3], [0, 0, 0, 1]):
-            raise ValueError("T_world_root is not a rigid transform (rotation block not orthonormal with det +1)")
+        checked_rotation(T[:3, :3], "T_world_root's rotation block (a rigid transform is needed)")
+        if not np.allclose(T[3], [0, 0, 0, 1]):
+            raise ValueError(f"T_world_root is not a rigid transform: last row {T[3].tolist()}, need [0, 0, 0, 1]")
         J = self.model.num_joints
         theta = np.zeros(J) if theta is None else np.asarray(theta, np.float64)
         if theta.shape != (J,) or not np.all(np.isfinite(theta)):
