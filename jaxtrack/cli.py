@@ -8,8 +8,9 @@ import sys
 import numpy as np
 
 
-def _cmd_demo(args) -> int:
-    """Track a built-in synthetic articulated scene frame to frame with the pose solver."""
+def _cmd_demo_solver(args) -> int:
+    """The pose-solver demo: a built-in synthetic articulated scene tracked frame to frame from noisy
+    2D-3D correspondences (no images)."""
     import jax
     import jax.numpy as jnp
     from tqdm import tqdm
@@ -25,7 +26,8 @@ def _cmd_demo(args) -> int:
     T_prev, theta_prev = jnp.asarray(base.T_world_root, jnp.float32), jnp.asarray(base.theta, jnp.float32)
     step = np.array([4.0, -3.0, 2.0, 0.05, 0.03, -0.04], np.float32)
     rows = []
-    for frame in tqdm(range(args.frames), desc="frames", disable=args.quiet):
+    frames = 60 if args.frames is None else args.frames
+    for frame in tqdm(range(frames), desc="frames", disable=args.quiet):
         T_true = np.asarray(se3_exp(jnp.asarray(step * (frame + 1))), np.float64) @ base.T_world_root
         theta_true = base.theta + 0.3 * np.sin(0.2 * (frame + 1) + np.arange(model.num_joints))
         scene = jt.synth.project_model_points(base, T_true, theta_true, noise_px=args.noise, seed=args.seed + frame)
@@ -49,7 +51,7 @@ def _cmd_demo(args) -> int:
     ok = sum(r[3] == "OK" for r in rows)
     print(
         f"jaxtrack demo: {model.num_parts} part(s), {model.num_joints} joint(s), {args.cameras} camera(s), "
-        f"{args.points} correspondences/frame, {args.noise} px noise, {args.frames} frames"
+        f"{args.points} correspondences/frame, {args.noise} px noise, {frames} frames"
     )
     print("| error | mean | max |\n|---|---:|---:|")
     print(f"| root rotation (deg) | {rot.mean():.4f} | {rot.max():.4f} |")
@@ -173,6 +175,298 @@ def _cmd_flow(args) -> int:
     return 0
 
 
+CUE_CHOICES = ("region", "flow", "sift")
+
+
+def _cue_list(text: str) -> tuple[str, ...]:
+    """An argparse type: comma-separated cue names, a non-empty subset of region, flow, sift."""
+    cues = tuple(c.strip().lower() for c in text.split(",") if c.strip())
+    bad = [c for c in cues if c not in CUE_CHOICES]
+    if bad or not cues:
+        raise argparse.ArgumentTypeError(f"unknown cue {bad[0]!r} (choose from {', '.join(CUE_CHOICES)})" if bad
+                                         else f"expected cue names, got {text!r}")
+    if len(set(cues)) != len(cues):
+        raise argparse.ArgumentTypeError(f"a cue is named twice in {text!r}")
+    return cues
+
+
+def _index_list(text: str) -> list[int]:
+    """An argparse type: comma-separated distinct non-negative integers."""
+    try:
+        values = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated view indices like 0,1, got {text!r}") from None
+    if not values or any(v < 0 for v in values) or len(set(values)) != len(values):
+        raise argparse.ArgumentTypeError(f"expected distinct view indices ≥ 0, got {text!r}")
+    return values
+
+
+def read_init_pose(text: str, what: str = "--init-pose") -> np.ndarray:
+    """A (4, 4) model → camera pose (mm) from a file or from 12 / 16 numbers on the command line.
+
+    Accepted: a .npy or .txt/.csv file holding 12 (3x4 [R|t]) or 16 (4x4) numbers, a .json file with such a
+    list (flat or nested) or a BOP entry {"cam_R_m2c": [9], "cam_t_m2c": [3]}, or the numbers themselves,
+    row-major, separated by commas or spaces.
+
+    Raises:
+        ValueError: naming `what` and the problem (unreadable file, wrong count, not a rigid transform).
+    """
+    import json
+    import pathlib
+
+    from jaxtrack.geometry import checked_rotation
+
+    path = pathlib.Path(text)
+    if path.is_file():
+        try:
+            if path.suffix.lower() == ".npy":
+                values = np.load(path, allow_pickle=False)
+            elif path.suffix.lower() == ".json":
+                data = json.loads(path.read_text())
+                if isinstance(data, dict):
+                    if "cam_R_m2c" not in data or "cam_t_m2c" not in data:
+                        raise ValueError("a JSON object needs the fields cam_R_m2c (9) and cam_t_m2c (3)")
+                    data = np.concatenate([np.reshape(np.asarray(data["cam_R_m2c"], float), (3, 3)),
+                                           np.reshape(np.asarray(data["cam_t_m2c"], float), (3, 1))], 1)
+                values = np.asarray(data, float)
+            else:
+                values = np.loadtxt(path, delimiter=None if path.suffix.lower() != ".csv" else ",", ndmin=1)
+        except (OSError, ValueError, TypeError) as e:
+            raise ValueError(f"{what}: {path}: cannot read a pose ({e})") from e
+        source = str(path)
+    else:
+        try:
+            values = np.array([float(v) for v in text.replace(",", " ").split()])
+        except ValueError:
+            raise ValueError(f"{what}: {text!r} is neither a file nor 12 / 16 numbers") from None
+        source = "the numbers given"
+    values = np.asarray(values, np.float64).ravel()
+    if values.size not in (12, 16):
+        raise ValueError(f"{what}: {source} holds {values.size} numbers; need 12 (3x4 [R|t]) or 16 (4x4), row-major")
+    if not np.all(np.isfinite(values)):
+        raise ValueError(f"{what}: {source} holds non-finite numbers")
+    T = np.eye(4)
+    T[: values.size // 4] = values.reshape(-1, 4)
+    if values.size == 16 and not np.allclose(T[3], [0, 0, 0, 1]):
+        raise ValueError(f"{what}: the last row must be 0 0 0 1, got {T[3].tolist()}")
+    checked_rotation(T[:3, :3], f"{what}: the rotation block")
+    if T[2, 3] <= 0:
+        raise ValueError(f"{what}: the translation puts the object behind the camera (z = {T[2, 3]:g} mm ≤ 0)")
+    return T
+
+
+def _check_writable(path, what: str) -> None:
+    """A file that will be written after the (long) tracking: its folder and, if present, the file itself."""
+    import os
+
+    folder = path.parent if str(path.parent) else "."
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise ValueError(f"{what}: cannot write into {folder} (permission denied)")
+    if path.exists() and not os.access(path, os.W_OK):
+        raise ValueError(f"{what}: {path} exists and is not writable")
+
+
+def _prepare_tracking(args, seq, out):
+    """Everything checked before any compilation: views, object, first pose, outputs. Returns the kwargs of
+    `track_sequence` and the overlay writer (or None)."""
+    from jaxtrack.io import load_trimesh, prepare_output_file
+    from jaxtrack.track import OverlayRecorder, OverlayWriter
+
+    n_views = len(seq.views)
+    views = list(range(n_views)) if args.cameras is None else args.cameras
+    bad = [c for c in views if c >= n_views]
+    if bad:
+        raise ValueError(f"--cameras: view {bad[0]} out of range: {seq.root} has {n_views} camera view(s) "
+                         f"(0-{n_views - 1})")
+    ids = sorted(seq.model_paths)
+    obj_id = ids[0] if args.obj_id is None else args.obj_id
+    if obj_id not in seq.model_paths:
+        raise ValueError(f"--obj-id: object {obj_id} has no mesh models/obj_{obj_id:06d}.* in {seq.root} (have {ids})")
+    view0 = seq.views[views[0]]
+    gt = view0.T_cam_obj.get(obj_id)
+    init_pose = None
+    if args.init_pose is not None:
+        init_pose = read_init_pose(args.init_pose)  # model → the first tracked view's camera
+    elif gt is None or not np.all(np.isfinite(gt[0])):
+        raise ValueError(f"{view0.folder / 'scene_gt.json'}: no pose of obj_id {obj_id} for the first frame; "
+                         "give one with --init-pose")
+    if args.reset_on_failure and (gt is None or not np.any(np.all(np.isfinite(gt[1:]), axis=(1, 2)))):
+        raise ValueError(f"--reset-on-failure: {view0.folder / 'scene_gt.json'} has no ground truth after the first "
+                         f"frame for obj_id {obj_id}")
+    prepare_output_file(out, "-o/--out", suffixes=(".csv",))
+    _check_writable(out, "-o/--out")
+    _check_writable(out.with_name(out.stem + ".frames.jsonl"), "-o/--out")
+    tm = load_trimesh(seq.model_paths[obj_id])  # an unreadable or empty mesh fails here, named
+    recorder = None
+    if args.video is not None:
+        H, W = view0.height, view0.width
+        writer = OverlayWriter(args.video, (H, W * len(views)), fps=args.fps, what="--video")
+        recorder = OverlayRecorder(writer, tm.vertices, tm.faces, np.stack([seq.views[c].K for c in views]))
+    kwargs = {"cues": args.cues, "cameras": views, "obj_id": obj_id, "init_pose": init_pose,
+              "reset_on_failure": args.reset_on_failure, "max_frames": args.max_frames, "progress": not args.quiet,
+              "on_frame": recorder}
+    return kwargs, recorder
+
+
+def _track(args, seq, out):
+    """Track `seq` as `args` say, write the results (and the overlay); returns the run and the paths."""
+    from jaxtrack.track import track_sequence, write_tracking_results
+
+    kwargs, recorder = _prepare_tracking(args, seq, out)
+    if not args.no_cache:
+        enable_compilation_cache()
+    try:
+        run = track_sequence(seq, **kwargs)
+    finally:
+        if recorder is not None:
+            recorder.writer.close()
+    csv, jsonl = write_tracking_results(run, out)
+    return run, csv, jsonl, recorder
+
+
+def _tracking_summary(run, seq, cues, csv, jsonl, recorder) -> None:
+    from collections import Counter
+
+    n = len(run.frame_ids)
+    steps = np.array([t.get("total_s", 0.0) for t in run.timings[1:]])
+    line = f"tracked {n} frame(s) of {seq.root} (view(s) {','.join(map(str, run.camera_ids))}, cues {'+'.join(cues)})"
+    if len(steps):
+        line += f"; frame 1 (with compilation) {steps[0]:.1f} s"
+    if len(steps) > 1:
+        med = float(np.median(steps[1:]))
+        line += f", later frames {med:.2f} s median ({1.0 / med:.1f} frames/s)"
+    print(line)
+    counts = Counter(run.status)
+    print("status: " + ", ".join(f"{k} {v}" for k, v in counts.most_common()) + f"; resets {int(np.sum(run.reset))}")
+    print(f"results -> {csv} (+ {jsonl.name})")
+    if recorder is not None:
+        kind = "video" if recorder.writer.is_video else "PNG folder"
+        print(f"overlay {kind} -> {recorder.writer.path} ({recorder.writer.count} frames)")
+
+
+def _cmd_track(args) -> int:
+    """Track a BOP-layout sequence from its first pose; write the BOP CSV, frames.jsonl and an overlay."""
+    import pathlib
+
+    from jaxtrack.io import read_sequence
+
+    seq = read_sequence(args.sequence)
+    out = pathlib.Path(args.out) if args.out else pathlib.Path(f"{seq.root.resolve().name}-results.csv")
+    run, csv, jsonl, recorder = _track(args, seq, out)
+    _tracking_summary(run, seq, args.cues, csv, jsonl, recorder)
+    return 0
+
+
+def _fmt(v: float, digits: int) -> str:
+    return "n/a" if not np.isfinite(v) else f"{v:.{digits}f}"
+
+
+def _print_evaluation(ev, per_frame: bool = True) -> None:
+    """Markdown tables: per frame, then means / medians / maxima, rates and the status quality."""
+    from jaxtrack.track import precision_recall
+
+    tenth = 0.1 * ev.diameter_mm
+    if per_frame:
+        print("| im_id | rot (deg) | trans (mm) | ADD (mm) | ADD-S (mm) | 5cm/5° | score | status |")
+        print("|---:|---:|---:|---:|---:|:---:|---:|---|")
+        for k, im_id in enumerate(ev.im_ids):
+            status = "" if ev.status is None else ev.status[k] + (" (reset)" if ev.reset[k] else "")
+            ok = "" if not ev.has_gt[k] else ("yes" if ev.success[k] else "NO")
+            print(f"| {im_id} | {_fmt(ev.rot_deg[k], 3)} | {_fmt(ev.trans_mm[k], 2)} | {_fmt(ev.add_mm[k], 2)} | "
+                  f"{_fmt(ev.adds_mm[k], 2)} | {ok} | {ev.score[k]:.3f} | {status} |")
+        print()
+    use = ev.has_gt & ~ev.initial
+    first = "" if not np.any(ev.has_gt & ev.initial) else " (the first frame, the given initial pose, left out)"
+    print(f"{int(use.sum())} tracked frame(s) with ground truth of {len(ev.im_ids)} in the results, view {ev.camera}, "
+          f"obj_id {ev.obj_id}{first}; model diameter {ev.diameter_mm:.1f} mm, ADD over {ev.points} vertices")
+    if not use.any():
+        print("no tracked frame has ground truth: nothing to evaluate")
+        return
+    print()
+    print("| error | mean | median | max |\n|---|---:|---:|---:|")
+    for name, v, d in (("rotation (deg)", ev.rot_deg, 3), ("translation (mm)", ev.trans_mm, 2), ("ADD (mm)", ev.add_mm, 2),
+                       ("ADD-S (mm)", ev.adds_mm, 2)):
+        x = v[use]
+        print(f"| {name} | {_fmt(x.mean(), d)} | {_fmt(np.median(x), d)} | {_fmt(x.max(), d)} |")
+    print()
+    failed = ~ev.success[use]
+    print("| rate | value |\n|---|---:|")
+    print(f"| 5 cm / 5° success | {np.mean(~failed):.3f} ({int(np.sum(~failed))}/{int(use.sum())}) |")
+    print(f"| ADD < 10% diameter ({tenth:.1f} mm) | {np.mean(ev.add_mm[use] < tenth):.3f} |")
+    print(f"| ADD-S < 10% diameter | {np.mean(ev.adds_mm[use] < tenth):.3f} |")
+    if ev.status is None:
+        print("\nno frames.jsonl beside the CSV: status quality not evaluated")
+        return
+    status = np.array(ev.status)[use]
+    lost = np.isin(status, ["LOST", "OUT_OF_VIEW", "NONFINITE"])
+    flagged = status != "OK"
+    print()
+    print("| status predicts failure (beyond 5 cm / 5°) | frames flagged | precision | recall |\n|---|---:|---:|---:|")
+    for name, pred in (("lost", lost), ("lost or uncertain", flagged)):
+        p, r = precision_recall(pred, failed)
+        print(f"| {name} | {int(pred.sum())} | {_fmt(p, 3)} | {_fmt(r, 3)} |")
+    if ev.reset is not None and ev.reset.any():
+        print(f"\nresets (RBOT protocol): {int(ev.reset.sum())}")
+
+
+def _cmd_eval(args) -> int:
+    """Errors of a results CSV against the sequence's ground truth, as markdown tables."""
+    from jaxtrack.track import evaluate_tracking
+
+    ev = evaluate_tracking(args.results, args.sequence, obj_id=args.obj_id, camera=args.camera)
+    _print_evaluation(ev, per_frame=not args.summary)
+    return 0
+
+
+DEMO_SIZE = (192, 144)  # small frames: compilation + 20 frames in about a minute or two on 2 cores
+
+
+def _cmd_demo(args) -> int:
+    """Synthesise a short textured sequence, track it with all cues, print the errors, write an overlay."""
+    import pathlib
+    import shutil
+    import tempfile
+
+    if args.solver_only:
+        return _cmd_demo_solver(args)
+    from tqdm import tqdm
+
+    from jaxtrack.io import prepare_output_folder, read_sequence
+    from jaxtrack.synth import SynthConfig, write_sequence
+    from jaxtrack.track import evaluate_tracking
+
+    out = pathlib.Path(args.out) if args.out else pathlib.Path(tempfile.gettempdir()) / "jaxtrack-demo"
+    prepare_output_folder(out, "--out")
+    seq_dir = out / "sequence"
+    if seq_dir.exists():  # a previous demo's sequence: replace it (stale frames would be read as ours)
+        if not (seq_dir / "synth_config.json").is_file():
+            raise ValueError(f"--out: {seq_dir} exists and is not a jaxtrack demo sequence; choose another --out")
+        shutil.rmtree(seq_dir)
+    frames = 20 if args.frames is None else args.frames
+    W, H = DEMO_SIZE
+    cfg = SynthConfig(object="box", appearance="photo", texture_photo="astronaut", size_mm=160, motion="random",
+                      step_px=4.0, step_deg=2.0, frames=frames, width=W, height=H, focal=700.0 * W / 640,
+                      background="coffee", seed=args.seed)
+    with tqdm(total=frames, desc="rendering", disable=args.quiet) as bar:
+        write_sequence(cfg, seq_dir, progress=bar)
+    seq = read_sequence(seq_dir)
+    track_args = argparse.Namespace(cameras=None, obj_id=None, init_pose=None, reset_on_failure=False, max_frames=None,
+                                    cues=args.cues, video=str(out / "overlay.mp4"), fps=10.0, quiet=args.quiet,
+                                    no_cache=args.no_cache)
+    run, csv, jsonl, recorder = _track(track_args, seq, out / "results.csv")
+    print(f"jaxtrack demo: a {cfg.size_mm:g} mm photo-textured box, {frames} frames of {W}x{H}, random motion "
+          f"(~{cfg.step_px:g} px, {cfg.step_deg:g}° per frame), cues {'+'.join(args.cues)}")
+    _tracking_summary(run, seq, args.cues, csv, jsonl, recorder)
+    ev = evaluate_tracking(csv, seq)
+    print()
+    _print_evaluation(ev, per_frame=False)
+    bad = ~ev.success[ev.has_gt]
+    if bad.any():
+        print(f"jaxtrack demo: tracking failed badly: {int(bad.sum())} frame(s) beyond 5 cm / 5°", file=sys.stderr)
+        return 1
+    return 0
+
+
 def _number(kind, low=None, high=None, low_open=False):
     """An argparse type: `kind` (int/float) in [low, high] (low excluded if low_open), finite."""
 
@@ -202,20 +496,72 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     demo = sub.add_parser(
         "demo",
-        help="track a built-in synthetic scene (no files needed) and print the pose errors",
-        description="Track a built-in synthetic articulated object frame to frame: each frame, noisy 2D-3D "
-        "correspondences are solved for the pose (6 DoF + joint angles) starting from the previous frame's "
-        "pose, and the errors against the exact ground truth are printed.",
+        help="synthesise a short sequence, track it with all cues, print the errors (no files needed)",
+        description="Render a short synthetic sequence of a photo-textured box with exact ground truth "
+        "(jaxtrack.synth), track it from its first pose with the region, flow and SIFT cues, print the pose "
+        "errors and the status counts, and write the results CSV and an overlay video (model contour green, "
+        "segmented contour magenta) to --out. Exits 1 when a frame ends beyond 5 cm / 5°. With --solver-only, "
+        "the earlier demo: a built-in articulated object solved frame to frame from noisy 2D-3D "
+        "correspondences (no images).",
     )
-    demo.add_argument("--frames", type=_number(int, 1), default=60, help="number of frames (default 60)")
-    demo.add_argument("--joints", type=_number(int, 0), default=3, help="joints of the built-in chain; 0 = rigid (default 3)")
-    demo.add_argument("--branches", type=int, default=1, choices=(1, 2), help="1 = an arm, 2 = a torso with two arms")
-    demo.add_argument("--cameras", type=_number(int, 1), default=2, help="cameras around the object (default 2)")
-    demo.add_argument("--points", type=_number(int, 1), default=200, help="correspondences per frame (default 200)")
-    demo.add_argument("--noise", type=_number(float, 0), default=1.0, help="pixel noise σ in px (default 1.0)")
+    demo.add_argument("--frames", type=_number(int, 1), default=None,
+                      help="number of frames (default 20; 60 with --solver-only)")
+    demo.add_argument("--out", help="output folder (default: jaxtrack-demo in the system's temp folder); "
+                      "holds sequence/, results.csv, results.frames.jsonl and overlay.mp4")
+    demo.add_argument("--cues", type=_cue_list, default=CUE_CHOICES, help="cues to track with (default region,flow,sift)")
     demo.add_argument("--seed", type=_number(int, 0), default=0, help="random seed (default 0)")
-    demo.add_argument("--quiet", action="store_true", help="no progress bar")
+    demo.add_argument("--no-cache", action="store_true", help="do not use the on-disk compilation cache")
+    demo.add_argument("--quiet", action="store_true", help="no progress bars")
+    solver = demo.add_argument_group("pose-solver demo (--solver-only)")
+    solver.add_argument("--solver-only", action="store_true",
+                        help="run the pose-solver demo instead (noisy 2D-3D correspondences, no images)")
+    solver.add_argument("--joints", type=_number(int, 0), default=3, help="joints of the built-in chain; 0 = rigid (default 3)")
+    solver.add_argument("--branches", type=int, default=1, choices=(1, 2), help="1 = an arm, 2 = a torso with two arms")
+    solver.add_argument("--cameras", type=_number(int, 1), default=2, help="cameras around the object (default 2)")
+    solver.add_argument("--points", type=_number(int, 1), default=200, help="correspondences per frame (default 200)")
+    solver.add_argument("--noise", type=_number(float, 0), default=1.0, help="pixel noise σ in px (default 1.0)")
     demo.set_defaults(func=_cmd_demo)
+
+    track = sub.add_parser(
+        "track",
+        help="track an object through a BOP-layout sequence; BOP results CSV, frames.jsonl, overlay video",
+        description="Track the object of a BOP-layout sequence (see DESIGN.md: SEQ/models/obj_XXXXXX.ply, "
+        "SEQ/000000/rgb/, scene_camera.json, scene_gt.json) from the pose of its first frame. Writes the BOP "
+        "results CSV (one row per frame and view, score = confidence in [0, 1], time = seconds for that frame) "
+        "and NAME.frames.jsonl beside it (status, correspondence counts per cue and camera, stage timings, reset "
+        "flag). Every input is checked before compiling. Compiled programs are cached on disk "
+        "(~/.cache/jaxtrack/xla or $JAXTRACK_CACHE_DIR).",
+    )
+    track.add_argument("sequence", metavar="SEQ", help="the sequence folder")
+    track.add_argument("-o", "--out", help="results CSV (default: ./<SEQ name>-results.csv)")
+    track.add_argument("--cues", type=_cue_list, default=CUE_CHOICES, help="comma-separated subset of region,flow,sift (default all)")
+    track.add_argument("--cameras", type=_index_list, help="comma-separated camera views, e.g. 0,1 (default all)")
+    track.add_argument("--obj-id", dest="obj_id", type=_number(int, 0), help="the object (default: the smallest id with a mesh)")
+    track.add_argument("--video", help="overlay: an .mp4/.avi/.mov/.mkv file, or else a folder of PNGs (views side by side)")
+    track.add_argument("--fps", type=_number(float, 0, low_open=True), default=10.0, help="overlay video frame rate (default 10)")
+    track.add_argument("--reset-on-failure", dest="reset_on_failure", action="store_true",
+                       help="RBOT protocol: beyond 5 cm / 5° of scene_gt.json, count a failure and restart from the truth")
+    track.add_argument("--init-pose", dest="init_pose", metavar="POSE",
+                       help="first pose, model → first view's camera (mm), instead of scene_gt.json's: a .npy/.json/.txt "
+                       "file or 12 (3x4) / 16 (4x4) numbers, row-major, comma-separated")
+    track.add_argument("--max-frames", dest="max_frames", type=_number(int, 1), help="track only the first N frames")
+    track.add_argument("--no-cache", action="store_true", help="do not use the on-disk compilation cache")
+    track.add_argument("--quiet", action="store_true", help="no progress bar")
+    track.set_defaults(func=_cmd_track)
+
+    evaluate = sub.add_parser(
+        "eval",
+        help="errors of a results CSV against a sequence's ground truth (markdown tables)",
+        description="Per frame and on average: rotation error (deg), translation error (mm), ADD and ADD-S (mm, "
+        "and the rate below 10%% of the model diameter), the 5 cm / 5° success rate, and how well the tracker's "
+        "status (from RESULTS.frames.jsonl, when present) predicted the frames beyond 5 cm / 5°.",
+    )
+    evaluate.add_argument("results", metavar="RESULTS.csv", help="BOP results CSV (jaxtrack track -o)")
+    evaluate.add_argument("sequence", metavar="SEQ", help="the sequence folder with scene_gt.json")
+    evaluate.add_argument("--obj-id", dest="obj_id", type=_number(int, 0), help="the object (default: the only one in the CSV)")
+    evaluate.add_argument("--camera", type=_number(int, 0), help="view (scene_id) whose rows are evaluated (default: the first)")
+    evaluate.add_argument("--summary", action="store_true", help="no per-frame table")
+    evaluate.set_defaults(func=_cmd_eval)
 
     synth = sub.add_parser(
         "synth",

@@ -15,6 +15,7 @@ import json
 import os
 import pathlib
 import time
+from collections.abc import Callable
 
 import numpy as np
 
@@ -59,6 +60,32 @@ class TrackingRun:
         return np.einsum("ij,fjk->fik", self.T_cam_world[camera], self.T_world_root)
 
 
+@dataclasses.dataclass
+class FrameRecord:
+    """What `track_sequence` hands its `on_frame` callback after each frame (C cameras), e.g. for an overlay.
+
+    Attributes:
+        index: position of the frame in the sequence; im_id: its BOP image id.
+        images: (C, H, W, 3) float32 frames in [0, 255].
+        T_world_root: (4, 4) the reported pose (model → world, mm); T_cam_obj: (C, 4, 4) in each camera.
+        status: `Status` name; confidence: in [0, 1].
+        region_phi: (C, h, w) the segmentation Φ on the crops (> 0 inside), None for the first frame or
+            when the object was out of view; offsets: (C, 2) (y0, x0) of the crops, or None.
+        reset: tracking restarted from the ground truth after this frame (RBOT protocol).
+    """
+
+    index: int
+    im_id: int
+    images: np.ndarray
+    T_world_root: np.ndarray
+    T_cam_obj: np.ndarray
+    status: str
+    confidence: float
+    region_phi: np.ndarray | None
+    offsets: np.ndarray | None
+    reset: bool
+
+
 def _failed(T_est, T_gt, max_deg: float = 5.0, max_mm: float = 50.0) -> bool:
     if not np.all(np.isfinite(T_gt)):
         return False
@@ -78,6 +105,7 @@ def track_sequence(
     reset_on_failure: bool = False,
     max_frames: int | None = None,
     progress: bool = True,
+    on_frame: Callable[[FrameRecord], object] | None = None,
 ) -> TrackingRun:
     """Track one rigid object through a BOP-layout sequence (`jaxtrack.io.read_sequence`).
 
@@ -90,6 +118,8 @@ def track_sequence(
         reset_on_failure: the RBOT protocol (needs ground truth for every frame).
         max_frames: track only the first frames.
         progress: show a progress bar with the frame rate.
+        on_frame: called with a `FrameRecord` after every frame (the first included), while tracking,
+            so that per-frame output (an overlay video) needs no frame kept in memory.
 
     Raises:
         ValueError: a camera index out of range, an unknown object, no initial pose.
@@ -121,6 +151,8 @@ def track_sequence(
     init_pose = np.asarray(init_pose, np.float64)
     if init_pose.shape != (4, 4):
         raise ValueError(f"init_pose must be (4, 4), got {init_pose.shape}")
+    if max_frames is not None and int(max_frames) < 1:
+        raise ValueError(f"max_frames must be ≥ 1, got {max_frames}")
     if reset_on_failure and gt is None:
         raise ValueError("reset_on_failure needs ground-truth poses in scene_gt.json")
     mesh = load_mesh(seq.model_paths[obj_id])
@@ -137,13 +169,26 @@ def track_sequence(
         from tqdm import tqdm
 
         bar = tqdm(total=n, desc="tracking", unit="frame")
+    T_cam_world = np.stack([np.asarray(seq.views[c].T_cam_world, np.float64) for c in views])
+
+    def report(k, images, T, phi=None, offsets=None):
+        if on_frame is not None:
+            on_frame(FrameRecord(
+                index=k, im_id=int(view0.frame_ids[k]), images=images, T_world_root=T,
+                T_cam_obj=np.einsum("cij,jk->cik", T_cam_world, T), status=status[-1], confidence=conf[-1],
+                region_phi=None if phi is None else np.asarray(phi), offsets=None if offsets is None else np.asarray(offsets),
+                reset=reset[-1],
+            ))
+
     start = time.perf_counter()
-    state = tracker.start(frames(0), np.linalg.inv(T_cam0_world) @ init_pose)
+    images = frames(0)
+    state = tracker.start(images, np.linalg.inv(T_cam0_world) @ init_pose)
     poses, thetas = [np.asarray(state.T_world_root, np.float64)], [np.asarray(state.theta, np.float64)]
     status, conf = [Status.OK.name], [1.0]
     counts = [np.zeros((len(views), 3), np.int64)]
     timings = [{"total_s": time.perf_counter() - start}]
     reset = [False]
+    report(0, images, poses[0])
     if bar is not None:
         bar.update(1)
     for k in range(1, n):
@@ -165,6 +210,8 @@ def track_sequence(
         info["timings"]["total_s"] = time.perf_counter() - t0
         timings.append(info["timings"])
         reset.append(did_reset)
+        has_crop = info.get("offsets") is not None
+        report(k, images, T, result.region_phi if has_crop else None, info["offsets"] if has_crop else None)
         if bar is not None:
             bar.update(1)
             bar.set_postfix(status=status[-1], conf=f"{conf[-1]:.2f}")
@@ -172,7 +219,7 @@ def track_sequence(
         bar.close()
     return TrackingRun(
         frame_ids=list(view0.frame_ids[:n]), obj_id=int(obj_id), T_world_root=np.stack(poses), theta=np.stack(thetas),
-        T_cam_world=np.stack([np.asarray(seq.views[c].T_cam_world, np.float64) for c in views]), camera_ids=views,
+        T_cam_world=T_cam_world, camera_ids=views,
         status=status, confidence=np.asarray(conf), counts=np.stack(counts), timings=timings, reset=np.asarray(reset),
     )
 
@@ -207,3 +254,152 @@ def write_tracking_results(run: TrackingRun, path: str | os.PathLike) -> tuple[p
                 "timings": {key: round(float(v), 6) for key, v in run.timings[k].items()}, "reset": bool(run.reset[k]),
             }) + "\n")
     return csv, jsonl
+
+
+@dataclasses.dataclass
+class TrackingEvaluation:
+    """Errors of one results CSV against a sequence's ground truth (F frames of one camera view).
+
+    Attributes:
+        im_ids: (F,) BOP image ids, in sequence order; camera: the view evaluated; obj_id: the object.
+        rot_deg, trans_mm: (F,) rotation (deg) and translation (mm) errors, NaN without ground truth.
+        add_mm, adds_mm: (F,) ADD and ADD-S over the mesh vertices (mm), NaN without ground truth.
+        diameter_mm: the model's diameter (models_info.json when it has one, else from the mesh).
+        has_gt: (F,) bool; initial: (F,) bool, the sequence's first frame (the given initial pose).
+        success: (F,) within 5 cm / 5° (False without ground truth).
+        score, time_s: (F,) the CSV's confidence and seconds per frame.
+        status: (F,) status names from NAME.frames.jsonl, None when that file is absent.
+        reset: (F,) bool reset flags from NAME.frames.jsonl, None when absent.
+        points: how many mesh vertices ADD / ADD-S used.
+    """
+
+    im_ids: np.ndarray
+    camera: int
+    obj_id: int
+    rot_deg: np.ndarray
+    trans_mm: np.ndarray
+    add_mm: np.ndarray
+    adds_mm: np.ndarray
+    diameter_mm: float
+    has_gt: np.ndarray
+    initial: np.ndarray
+    success: np.ndarray
+    score: np.ndarray
+    time_s: np.ndarray
+    status: list | None
+    reset: np.ndarray | None
+    points: int
+
+
+MAX_EVAL_POINTS = 4000  # ADD-S is O(N²) per frame: larger meshes are subsampled (deterministically)
+
+
+def _frames_jsonl(path: pathlib.Path, im_ids: list) -> tuple[list | None, np.ndarray | None]:
+    """Status and reset flag per image id from NAME.frames.jsonl (None, None when the file is absent)."""
+    if not path.is_file():
+        return None, None
+    by_id = {}
+    for n, line in enumerate(path.read_text().splitlines(), start=1):
+        if not line.strip():
+            continue
+        try:
+            rec = json.loads(line)
+            by_id[int(rec["im_id"])] = (str(rec["status"]), bool(rec.get("reset", False)))
+        except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
+            raise ValueError(f"{path}:{n}: malformed frame record ({e})") from e
+    missing = [i for i in im_ids if i not in by_id]
+    if missing:
+        raise ValueError(f"{path}: no record for im_id {missing[0]} of the results CSV ({len(missing)} missing)")
+    return [by_id[i][0] for i in im_ids], np.array([by_id[i][1] for i in im_ids], bool)
+
+
+def _diameter(seq, obj_id: int, tm) -> float:
+    info = seq.root / "models" / "models_info.json"
+    if info.is_file():
+        try:
+            d = float(json.loads(info.read_text())[str(obj_id)]["diameter"])
+            if np.isfinite(d) and d > 0:
+                return d
+        except (json.JSONDecodeError, KeyError, TypeError, ValueError):
+            pass  # a models_info.json without this object's diameter: measure it
+    from ._evaluate import model_diameter
+
+    return model_diameter(np.asarray(tm.convex_hull.vertices if len(tm.vertices) > 3 else tm.vertices))
+
+
+def evaluate_tracking(results, sequence, *, obj_id: int | None = None, camera: int | None = None) -> TrackingEvaluation:
+    """Compare a BOP results CSV (`write_tracking_results`) with the ground truth of a sequence.
+
+    Reads NAME.frames.jsonl beside the CSV when present (statuses, resets). ADD / ADD-S use the mesh
+    vertices (at most `MAX_EVAL_POINTS`, a fixed random subset beyond that).
+
+    Args:
+        results: the CSV path.
+        sequence: a `jaxtrack.io.Sequence` or its folder.
+        obj_id: the object (default: the only one in the CSV).
+        camera: the view (scene_id) whose rows are evaluated (default: the smallest in the CSV).
+
+    Raises:
+        ValueError: naming the file and what does not match (an im_id that is not a frame of the
+            sequence, an object without a mesh, a repeated row, a view the sequence does not have).
+    """
+    from ..io import Sequence, load_trimesh, read_bop_results, read_sequence
+    from ._evaluate import add_error, adds_error, pose_errors, success_mask
+
+    path = pathlib.Path(results)
+    seq = sequence if isinstance(sequence, Sequence) else read_sequence(sequence)
+    rows = read_bop_results(path)
+    if not rows:
+        raise ValueError(f"{path}: no result rows")
+    objs = sorted({r[2] for r in rows})
+    if obj_id is None:
+        if len(objs) > 1:
+            raise ValueError(f"{path}: rows for several objects {objs}; choose one with obj_id")
+        obj_id = objs[0]
+    if obj_id not in objs:
+        raise ValueError(f"{path}: no rows for obj_id {obj_id} (have {objs})")
+    if obj_id not in seq.model_paths:
+        raise ValueError(f"{path}: obj_id {obj_id} has no mesh in {seq.root}/models (have {sorted(seq.model_paths)})")
+    rows = [r for r in rows if r[2] == obj_id]
+    cams = sorted({r[0] for r in rows})
+    camera = cams[0] if camera is None else int(camera)
+    if camera not in cams:
+        raise ValueError(f"{path}: no rows for view (scene_id) {camera} (have {cams})")
+    if not 0 <= camera < len(seq.views):
+        raise ValueError(f"{path}: scene_id {camera} is not a camera view of {seq.root} (it has {len(seq.views)})")
+    view = seq.views[camera]
+    position = {int(i): k for k, i in enumerate(view.frame_ids)}
+    by_frame = {}
+    for r in rows:
+        if r[0] != camera:
+            continue
+        if r[1] not in position:
+            raise ValueError(f"{path}: im_id {r[1]} is not a frame of {view.folder} (its ids run {view.frame_ids[0]}.."
+                             f"{view.frame_ids[-1]}, {len(view.frame_ids)} frames): results of another sequence?")
+        if r[1] in by_frame:
+            raise ValueError(f"{path}: two rows for view {camera}, im_id {r[1]}, obj_id {obj_id}")
+        by_frame[r[1]] = r
+    im_ids = sorted(by_frame, key=position.get)
+    k = np.array([position[i] for i in im_ids])
+    T_est = np.stack([by_frame[i][4] for i in im_ids])
+    gt_all = view.T_cam_obj.get(obj_id)
+    T_gt = np.full_like(T_est, np.nan) if gt_all is None else np.asarray(gt_all, np.float64)[k]
+    has_gt = np.all(np.isfinite(T_gt), axis=(1, 2))
+    tm = load_trimesh(seq.model_paths[obj_id])
+    points = np.asarray(tm.vertices, np.float64)
+    if len(points) > MAX_EVAL_POINTS:
+        points = points[np.sort(np.random.default_rng(0).choice(len(points), MAX_EVAL_POINTS, replace=False))]
+    nan = np.full(len(im_ids), np.nan)
+    rot, trans, add, adds = nan.copy(), nan.copy(), nan.copy(), nan.copy()
+    if has_gt.any():
+        rot[has_gt], trans[has_gt] = pose_errors(T_est[has_gt], T_gt[has_gt])
+        add[has_gt] = add_error(T_est[has_gt], T_gt[has_gt], points)
+        adds[has_gt] = adds_error(T_est[has_gt], T_gt[has_gt], points)
+    status, reset = _frames_jsonl(path.with_name(path.stem + ".frames.jsonl"), im_ids)
+    return TrackingEvaluation(
+        im_ids=np.asarray(im_ids), camera=camera, obj_id=int(obj_id), rot_deg=rot, trans_mm=trans, add_mm=add, adds_mm=adds,
+        diameter_mm=_diameter(seq, obj_id, tm), has_gt=has_gt, initial=k == 0,
+        success=has_gt & success_mask(np.nan_to_num(rot, nan=np.inf), np.nan_to_num(trans, nan=np.inf)),
+        score=np.array([by_frame[i][3] for i in im_ids]), time_s=np.array([by_frame[i][5] for i in im_ids]),
+        status=status, reset=reset, points=len(points),
+    )
