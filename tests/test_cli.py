@@ -182,3 +182,11 @@ def test_demo_option_ranges(capsys, option, value):
         main(["demo", option, value])
     assert exit_info.value.code == 2
     assert f"jaxtrack demo: error: argument {option}: must be" in capsys.readouterr().err
+
+
+def test_demo_solver_only_keeps_the_pose_solver_demo(capsys):
+    """`jaxtrack demo --solver-only`: the earlier demo (noisy 2D-3D correspondences, no images)."""
+    assert main(["demo", "--solver-only", "--frames", "2", "--joints", "0", "--cameras", "1", "--points", "30", "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "1 part(s), 0 joint(s), 1 camera(s), 30 correspondences/frame" in out and "2 frames" in out
+    assert "solver status OK on 2/2 frames" in out

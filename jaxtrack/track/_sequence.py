@@ -41,6 +41,8 @@ class TrackingRun:
         counts: (F, C, 3) correspondences with weight per camera and cue (region, flow, sift).
         timings: per frame, host seconds per stage.
         reset: (F,) bool, tracking restarted from the ground truth at this frame (RBOT protocol).
+        crops: per frame the (h, w) crop size class of the step (a new class is a new compilation),
+            None for the first frame and out-of-view frames.
     """
 
     frame_ids: list
@@ -54,6 +56,7 @@ class TrackingRun:
     counts: np.ndarray
     timings: list
     reset: np.ndarray
+    crops: list | None = None
 
     def T_cam_obj(self, camera: int = 0) -> np.ndarray:
         """(F, 4, 4) estimated object pose in camera `camera` (position in `camera_ids`)."""
@@ -188,6 +191,7 @@ def track_sequence(
     counts = [np.zeros((len(views), 3), np.int64)]
     timings = [{"total_s": time.perf_counter() - start}]
     reset = [False]
+    crops = [None]
     report(0, images, poses[0])
     if bar is not None:
         bar.update(1)
@@ -210,6 +214,7 @@ def track_sequence(
         info["timings"]["total_s"] = time.perf_counter() - t0
         timings.append(info["timings"])
         reset.append(did_reset)
+        crops.append(None if info.get("crop_shape") is None else tuple(int(v) for v in info["crop_shape"]))
         has_crop = info.get("offsets") is not None
         report(k, images, T, result.region_phi if has_crop else None, info["offsets"] if has_crop else None)
         if bar is not None:
@@ -221,12 +226,14 @@ def track_sequence(
         frame_ids=list(view0.frame_ids[:n]), obj_id=int(obj_id), T_world_root=np.stack(poses), theta=np.stack(thetas),
         T_cam_world=T_cam_world, camera_ids=views,
         status=status, confidence=np.asarray(conf), counts=np.stack(counts), timings=timings, reset=np.asarray(reset),
+        crops=crops,
     )
 
 
 def write_tracking_results(run: TrackingRun, path: str | os.PathLike) -> tuple[pathlib.Path, pathlib.Path]:
     """The BOP results CSV (one row per frame and camera view: scene_id = view index) and, beside it,
-    NAME.frames.jsonl with the status, confidence, counts per cue and camera, timings and reset flag.
+    NAME.frames.jsonl with the status, confidence, counts per cue and camera, timings, reset flag and the
+    step's crop size class.
 
     Returns:
         (csv path, jsonl path).
@@ -252,6 +259,7 @@ def write_tracking_results(run: TrackingRun, path: str | os.PathLike) -> tuple[p
             f.write(json.dumps({
                 "im_id": int(im_id), "status": run.status[k], "confidence": float(run.confidence[k]), "counts": counts,
                 "timings": {key: round(float(v), 6) for key, v in run.timings[k].items()}, "reset": bool(run.reset[k]),
+                "crop": None if run.crops is None or run.crops[k] is None else list(run.crops[k]),
             }) + "\n")
     return csv, jsonl
 
