@@ -557,7 +557,7 @@ def build_parser() -> argparse.ArgumentParser:
     track.add_argument("--init-pose", dest="init_pose", metavar="POSE",
                        help="first pose, model → first view's camera (mm), instead of scene_gt.json's: a .npy/.json/.txt "
                        "file or 12 (3x4) / 16 (4x4) numbers, row-major, comma-separated")
-    track.add_argument("--max-frames", dest="max_frames", type=_number(int, 1), help="track only the first N frames")
+    track.add_argument("--max-frames", dest="max_frames", metavar="N", type=_number(int, 1), help="track only the first N frames")
     track.add_argument("--no-cache", action="store_true", help="do not use the on-disk compilation cache")
     track.add_argument("--quiet", action="store_true", help="no progress bar")
     track.set_defaults(func=_cmd_track)
@@ -566,7 +566,7 @@ def build_parser() -> argparse.ArgumentParser:
         "eval",
         help="errors of a results CSV against a sequence's ground truth (markdown tables)",
         description="Per frame and on average: rotation error (deg), translation error (mm), ADD and ADD-S (mm, "
-        "and the rate below 10%% of the model diameter), the 5 cm / 5° success rate, and how well the tracker's "
+        "and the rate below 10% of the model diameter), the 5 cm / 5° success rate, and how well the tracker's "
         "status (from RESULTS.frames.jsonl, when present) predicted the frames beyond 5 cm / 5°.",
     )
     evaluate.add_argument("results", metavar="RESULTS.csv", help="BOP results CSV (jaxtrack track -o)")
