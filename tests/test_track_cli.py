@@ -328,6 +328,11 @@ def test_overlay_draws_only_on_the_contours():
     assert np.all(out[model_edge] == MODEL_COLOUR)
     assert np.all(out[seg_edge & ~model_edge] == SEGMENT_COLOUR)
     assert not np.any(changed & ~model_edge & ~seg_edge)  # nothing but the contours
+    # Coinciding contours with 2-px lines: the segmentation (1 px) on top of the model's line, both visible.
+    thick = overlay_frame(images[:1], p_cam[:1], faces, K, region_phi=np.where(sil0, 1.0, -1.0)[None],
+                          offsets=np.zeros((1, 2), int), thickness=2)
+    assert np.all(thick[edge(sil0)] == SEGMENT_COLOUR)
+    assert np.sum(np.all(thick == MODEL_COLOUR, axis=-1)) > 0.5 * edge(sil0).sum()
     # Overlapping triangles make a union, not the even-odd pattern of cv2.fillPoly.
     two = model_mask(np.vstack([square, square + [10.0, 10, 0]]), np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]]),
                      K, (60, 80))

@@ -122,7 +122,7 @@ def overlay_frame(
     thickness: int = 1,
 ) -> np.ndarray:
     """One overlay frame: per camera the model contour (green) and the segmented contour (magenta),
-    the views tiled side by side, a text line on top.
+    the views tiled side by side, a text line on top. Nothing else in the frames changes.
 
     Args:
         images: (C, H, W, 3) RGB frames in [0, 255] (or (C, H, W) grey).
@@ -152,11 +152,18 @@ def overlay_frame(
     tiles = []
     for c in range(C):
         tile = np.ascontiguousarray(np.clip(images[c], 0, 255).astype(np.uint8))
-        if region_phi is not None:
-            draw_contour(tile, segmentation_mask(np.asarray(region_phi)[c], np.asarray(offsets)[c], (H, W)), SEGMENT_COLOUR,
-                         thickness)
         sil = model_mask(p_cam[c], faces, K[c], (H, W), None if dist is None else dist[c])
-        draw_contour(tile, sil, MODEL_COLOUR, thickness)
+        seg = None if region_phi is None else segmentation_mask(np.asarray(region_phi)[c], np.asarray(offsets)[c], (H, W))
+        # Where the two contours coincide (good tracking) one would hide the other: with thick lines the
+        # segmentation goes on top, a pixel thinner, so both stay visible; 1-px lines show the model's.
+        if thickness >= 2:
+            draw_contour(tile, sil, MODEL_COLOUR, thickness)
+            if seg is not None:
+                draw_contour(tile, seg, SEGMENT_COLOUR, thickness - 1)
+        else:
+            if seg is not None:
+                draw_contour(tile, seg, SEGMENT_COLOUR, thickness)
+            draw_contour(tile, sil, MODEL_COLOUR, thickness)
         tiles.append(tile)
     out = np.concatenate(tiles, axis=1)
     if text:
