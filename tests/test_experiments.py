@@ -3,6 +3,9 @@
 import importlib.util
 import pathlib
 
+import numpy as np
+import pytest
+
 EXPERIMENTS = pathlib.Path(__file__).resolve().parents[1] / "experiments"
 
 
@@ -34,3 +37,75 @@ def test_bench_flow_quick(tmp_path, shared_data):
     assert epe_ours < 0.25 and epe_ours < epe_dis and epe_ours < epe_fb
     assert float(rows["Yosemite (terrain)"][4]) < 6.0  # AAE in degrees (measured 4.3 at the Middlebury setting)
     assert (tmp_path / "flow.png").stat().st_size > 1000
+
+
+# --- tracker speed and preset success (issue 11): one compiled program shared by both smoke runs -------------------
+def _markdown_rows(text, first_cell):
+    """Cells of the markdown table rows whose first cell is `first_cell`."""
+    return [[c.strip() for c in line.strip().strip("|").split("|")] for line in text.splitlines()
+            if line.startswith("| ") and line.strip("| ").split("|")[0].strip() == first_cell]
+
+
+@pytest.fixture(scope="module")
+def track_smoke(tmp_path_factory):
+    """bench_track --quick, then track_presets --quick on the same 160x120 frames and configuration (the
+    second run reuses the first one's compiled step); M3T columns when the baseline is built."""
+    out = tmp_path_factory.mktemp("track_smoke")
+    bench = _load("bench_track")
+    bench_rows, bench_m3t = bench.main(["--quick", "--out", str(out / "bench.md")])
+    preset_rows = _load("track_presets").main(["--quick", "--out", str(out / "presets.md")])
+    return {"bench": (bench_rows, bench_m3t, (out / "bench.md").read_text()),
+            "presets": (preset_rows, (out / "presets.md").read_text()), "m3t": bench.m3t_available()}
+
+
+def test_bench_track_quick(track_smoke):
+    rows, _, text = track_smoke["bench"]
+    cold, warm = rows[("region", 1)]
+    assert warm is None  # --quick runs in-process: no warm-cache run
+    assert np.isfinite(cold["frame_ms"]) and cold["frame_ms"] > 0 and cold["timed"] >= 1
+    assert 0 < cold["start_s"] < cold["ready_s"] and cold["first_step_s"] > 0
+    stages = cold["stages"]
+    for name in ("render", "segmentation", "shape matching", "refinement solve", "occlusion"):
+        assert np.isfinite(stages["ms"][name]) and stages["ms"][name] >= 0, name
+    assert stages["calls"]["segmentation"] == stages["rounds"] >= 1
+    assert stages["calls"]["render"] == stages["rounds"] + 2
+    # The table: one row for the configuration with every column filled, the breakdown and the goals.
+    row = _markdown_rows(text, "region")[0]
+    assert len(row) == 13 and row[1] == "1" and float(row[3]) > 0
+    assert "| sum of the stages |" in text and "| whole step (`Tracker.step`, same inputs) |" in text
+    assert "region only:" in text and "frames/s (goal ≥ 30)" in text
+
+
+def test_bench_track_quick_m3t(track_smoke):
+    smoke = track_smoke
+    if not smoke["m3t"]:
+        pytest.skip("M3T baseline not built (~/.cache/m3t-baseline/build/m3t_run_bop): M3T columns not checked")
+    _, m3t, text = smoke["bench"]
+    assert set(m3t) == {"region", "regtex"} and all(0 < r["ms"] < 1000 and r["frames"] == 3 for r in m3t.values())
+    assert _markdown_rows(text, "regtex")
+
+
+def test_track_presets_quick(track_smoke):
+    rows, text = track_smoke["presets"]
+    ours = [r for r in rows if r[0] == "jaxtrack"]
+    assert [(r[1], r[2]) for r in ours] == [("region", "occluded-box")]
+    r = ours[0][3]
+    assert r["frames"] == 3 and r["cameras"] == 1 and 0 <= r["success"] <= 1
+    assert r["failures"] == round((1 - r["success"]) * r["frames"])
+    assert np.isfinite(r["rot_deg"]) and np.isfinite(r["trans_mm"])
+    # Success table: a row per method with one cell per preset; the detail table names the preset.
+    cells = _markdown_rows(text, "jaxtrack")[0]
+    assert cells[1] == "region" and cells[2].endswith("%")
+    detail = _markdown_rows(text, "occluded-box")
+    assert detail and detail[0][1] == "jaxtrack" and detail[0][4] == "3"
+
+
+def test_track_presets_quick_m3t(track_smoke):
+    smoke = track_smoke
+    if not smoke["m3t"]:
+        pytest.skip("M3T baseline not built (~/.cache/m3t-baseline/build/m3t_run_bop): M3T columns not checked")
+    rows, text = smoke["presets"]
+    m3t = {r[1]: r[3] for r in rows if r[0] == "M3T"}
+    assert set(m3t) == {"region", "regtex"}
+    assert all(r["frames"] == 3 and 0 <= r["success"] <= 1 and np.isfinite(r["rot_deg"]) for r in m3t.values())
+    assert len(_markdown_rows(text, "M3T")) == 2

@@ -1,0 +1,558 @@
+"""Tracker speed (issue 11): milliseconds per frame, first-frame time with a cold and a warm compile
+cache, and a per-stage breakdown, for region only and for all cues, on 1, 2 and 4 cameras; DLR M3T's
+ms per frame on the same 1-camera frames, from the same run.
+
+Setting: a synthetic textured box (`jaxtrack.synth`, photo texture, random 6-DoF motion of ~10 px
+and 3° per frame) seen by up to 4 cameras on a ring, 640x480, the box about 200 px across (measured
+and printed), float32, the tracker's default configuration and parameters.
+
+Each configuration (cue subset x number of cameras) runs in fresh subprocesses, so nothing compiled
+in memory carries over:
+- cold: an empty on-disk compilation cache (a new temporary folder, set up like `jaxtrack track`
+  does); first frame ready = imports + reading + `Tracker.start` + the first `Tracker.step`
+  (which compiles), counted from the moment the subprocess was launched;
+- warm: a second subprocess with the cache the cold one filled;
+- ms per frame: the median host time of `Tracker.step` (crop, SIFT on the host, the jitted step)
+  over the frames after the first, in the cold subprocess; frames that traced the step again (a new
+  crop size class or raster plan) are left out and counted.
+The per-stage split cannot be read from inside one jitted step: each stage is jitted on its own and
+timed on the inputs of the last tracked frame (medians of repeats), then multiplied by its calls per
+frame (rounds of the refinement loop as run on that frame). The sum is shown beside the whole step.
+
+    python experiments/bench_track.py                 # writes experiments/results/bench_track.md
+    python experiments/bench_track.py --quick --out /tmp/bench_track.md   # smoke run (160x120, region only)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+RESULTS = pathlib.Path(__file__).resolve().parent / "results"
+SHARED = pathlib.Path(os.environ.get("JAXTRACK_SHARED", pathlib.Path(__file__).resolve().parents[2] / "shared"))
+M3T_RUN = SHARED / "baselines" / "m3t" / "run.sh"
+M3T_BIN = pathlib.Path(os.environ.get("M3T_BASELINE_ROOT", pathlib.Path.home() / ".cache" / "m3t-baseline")) / "build" / "m3t_run_bop"
+ALL_CUES = ("region", "flow", "sift")
+STAGES = ("render", "occlusion", "flow", "SIFT (host: detect + match)", "SIFT (device: filters + assignment)",
+          "prediction solve", "segmentation", "shape matching", "refinement solve")
+GOALS = {"all_fps": 10.0, "region_fps": 30.0, "cold_s": 60.0, "warm_s": 10.0}
+
+
+def m3t_available() -> bool:
+    """The M3T baseline runner and its binary are built on this machine."""
+    return M3T_RUN.is_file() and M3T_BIN.is_file()
+
+
+def parse_configs(text: str) -> list[tuple[str, int]]:
+    """'region:1,all:2' → [('region', 1), ('all', 2)]; errors name the bad entry."""
+    out = []
+    for item in text.split(","):
+        cues, _, cams = item.strip().partition(":")
+        if cues not in ("region", "all") or cams not in ("1", "2", "3", "4"):
+            raise SystemExit(f"bench_track: --configs entry {item!r} must be region:N or all:N with N in 1..4")
+        out.append((cues, int(cams)))
+    return out
+
+
+# --- the subprocess: one configuration, one cache state --------------------------------------------
+def _median_ms(fn, repeats: int) -> float:
+    import jax
+
+    jax.block_until_ready(fn())  # compile (or cache hit) + one run
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - t)
+    return 1000.0 * float(np.median(times))
+
+
+def stage_breakdown(tracker, state, frames_np, repeats: int) -> dict:
+    """ms per call and calls per frame of each stage of `track_step`, each jitted alone on the inputs
+    of one frame (state at t, frames t+1). Mirrors `jaxtrack.track._step.track_step` and the rounds of
+    `refine_pose_region`; the whole frame (`Tracker.step`) is timed on the same inputs."""
+    import dataclasses
+
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
+    from jaxtrack.cues.levelset import (
+        band_sdf,
+        contour_matches,
+        crop_camera,
+        feature_channels,
+        local_densities,
+        projected_boxes,
+        region_memberships,
+        segment,
+    )
+    from jaxtrack.cues.occlusion import detect_occlusion, observe_texels, update_appearance
+    from jaxtrack.image import crop_window
+    from jaxtrack.render import render
+    from jaxtrack.solve import (
+        Cue,
+        CueWeights,
+        SolverConfig,
+        concatenate_correspondences,
+        correspondences_from_pixels,
+        fuse_cue_weights,
+        solve_pose,
+    )
+    from jaxtrack.track import TrackerSetup, motion_correspondences
+
+    config, model, dtype = tracker.config, tracker.model, tracker.dtype
+    frames = tracker.check_frames(frames_np)
+    boxes = projected_boxes(tracker.mesh, tracker.cameras, state.T_world_root, state.theta, model)
+    offsets_np, crop_shape = tracker.crop(state.T_world_root, state.theta, boxes)
+    params = tracker.params_for(crop_shape)
+    offsets = jnp.asarray(offsets_np)
+    frames_j = jnp.asarray(frames, dtype)
+    cams = crop_camera(tracker.cameras, offsets, crop_shape)
+    T_t, theta_t = state.T_world_root, state.theta
+    out = {"crop": list(crop_shape), "ms": {}, "calls": {}}
+
+    # The whole frame as the tracker runs it (host crop + SIFT + the compiled step), same inputs.
+    motion_px = tracker.last_motion_px
+
+    def whole():
+        tracker.last_motion_px = motion_px  # keep the crop margin (and so the compiled program) fixed
+        return tracker.step(state, frames)[1].T_world_root
+
+    out["whole_ms"] = _median_ms(whole, repeats)
+    tracker.last_motion_px = motion_px
+    _, result, _ = tracker.step(state, frames)
+    rounds = int(result.iterations)
+    out["rounds"] = rounds
+    T_new, theta_new = result.T_world_root, result.theta
+
+    rend = eqx.filter_jit(lambda T, th: jax.vmap(lambda cam: render(tracker.mesh, cam, T, th, model, tracker.plan))(cams))
+    out["ms"]["render"] = _median_ms(lambda: rend(T_t, theta_t).depth, repeats)
+    out["calls"]["render"] = 2 + rounds if "region" in config.cues else 2
+
+    matches = tracker.matches(state, frames)
+    parts = []
+    for cue in ("flow", "sift"):
+        if cue not in config.cues:
+            continue
+        one = TrackerSetup(tracker.mesh, model, tracker.cameras, tracker.atlas, tracker.plan,
+                           dataclasses.replace(config, cues=(cue,)))
+        fn = eqx.filter_jit(lambda s, st, fr, m, off, p: motion_correspondences(s, st, fr, m, off, p, crop_shape)[0])
+        ms = _median_ms(lambda one=one, fn=fn: fn(one, state, frames_j, matches, offsets, params).weight, repeats)
+        name = "flow" if cue == "flow" else "SIFT (device: filters + assignment)"
+        out["ms"][name] = max(ms - out["ms"]["render"], 0.0)  # motion_correspondences renders at χ_t first
+        out["calls"][name] = 1
+        parts.append(fn(one, state, frames_j, matches, offsets, params))
+    if "sift" in config.cues:
+        times = []
+        for _ in range(repeats):
+            timings: dict = {}
+            tracker.matches(state, frames, timings)
+            times.append(timings.get("detect_s", 0.0) + timings.get("match_s", 0.0))
+        out["ms"]["SIFT (host: detect + match)"] = 1000.0 * float(np.median(times))
+        out["calls"]["SIFT (host: detect + match)"] = 1
+    motion = concatenate_correspondences(*parts) if parts else None
+    if motion is not None:
+        pred = eqx.filter_jit(lambda c: solve_pose(model, fuse_cue_weights(c, params.weights, prediction=True), T_t, theta_t,
+                                                   SolverConfig(max_steps=config.prediction_steps)).T_world_root)
+        out["ms"]["prediction solve"] = _median_ms(lambda: pred(motion), repeats)
+        out["calls"]["prediction solve"] = 1
+
+    crops_t1 = jax.vmap(crop_window, in_axes=(0, 0, None))(frames_j, offsets, crop_shape)
+    if "region" in config.cues:
+        rc, rp = config.region, params.region
+        f = rc.density_factor
+
+        def segmentation(images, T, th):
+            def one(cam, image):
+                ren = render(tracker.mesh, cam, T, th, model, tracker.plan)
+                phi0 = band_sdf(ren.face_id >= 0).astype(dtype)
+                feats = feature_channels(image, rc.texture).astype(dtype)
+                w_obj, w_bg = region_memberships(phi0, rp.density_band)
+                dens = local_densities(feats, w_obj, rp.rho, rp.kappa, rp.sigma_min, f, weight_background=w_bg)
+                phi, _ = segment(feats, phi0, phi0, dens, rp, rc)
+                return phi0, phi, ren
+
+            return jax.vmap(one)(cams, images)
+
+        seg = eqx.filter_jit(segmentation)
+        phi0, phi, ren = seg(crops_t1, T_new, theta_new)
+        # segmentation = features + Φ0 + densities + level-set iterations, without the render inside it
+        out["ms"]["segmentation"] = max(_median_ms(lambda: seg(crops_t1, T_new, theta_new)[1], repeats) - out["ms"]["render"], 0.0)
+        match = eqx.filter_jit(lambda a, b, r: jax.vmap(
+            lambda p0, p, s, pm, pa: contour_matches(p0, p, s, pm, pa, rp, rc.capacity, rc.matching))(a, b, r.face_id >= 0, r.p_model, r.part_id))
+        out["ms"]["shape matching"] = _median_ms(lambda: match(phi0, phi, ren)[4], repeats)
+        _, target, p_model, part, weight = match(phi0, phi, ren)
+        C = offsets.shape[0]
+        cam_index = jnp.broadcast_to(jnp.arange(C, dtype=jnp.int32)[:, None], weight.shape)
+        target = target + offsets[:, None, ::-1].astype(dtype)
+        corr = correspondences_from_pixels(tracker.cameras, target.reshape(-1, 2), cam_index.reshape(-1), p_model.reshape(-1, 3),
+                                           part.reshape(-1), weight.reshape(-1), undistort=False, cue=Cue.REGION)
+        if motion is not None:
+            corr = fuse_cue_weights(concatenate_correspondences(corr, motion), CueWeights())
+        solve = eqx.filter_jit(lambda c: solve_pose(model, c, T_new, theta_new, SolverConfig(max_steps=rc.solver_steps)).T_world_root)
+        out["ms"]["refinement solve"] = _median_ms(lambda: solve(corr), repeats)
+        for name in ("segmentation", "shape matching", "refinement solve"):
+            out["calls"][name] = rounds
+
+    if config.occlusion:
+        def occlusion(images, T, th):
+            ren = jax.vmap(lambda cam: render(tracker.mesh, cam, T, th, model, tracker.plan))(cams)
+            obs = observe_texels(tracker.atlas, images, ren.depth, cams, T, params.occlusion, th, model, config.occlusion_config)
+            occ = detect_occlusion(tracker.atlas, state.appearance, obs, ren, params.occlusion, config.occlusion_config)
+            return update_appearance(state.appearance, obs, occ.occluded, params.occlusion, hold_new=occ.near_occlusion)
+
+        occ_fn = eqx.filter_jit(occlusion)
+        ms = _median_ms(lambda: jax.tree.leaves(occ_fn(crops_t1, T_new, theta_new))[0], repeats)
+        out["ms"]["occlusion"] = max(ms - out["ms"]["render"], 0.0)  # its render at χ_{t+1} is counted under render
+        out["calls"]["occlusion"] = 1
+    return out
+
+
+def worker(spec: dict) -> dict:
+    """One configuration in this (fresh) process: first frame, then timed frames, then the breakdown."""
+    import cv2
+
+    cv2.setNumThreads(1)  # OpenCV's idle workers compete with XLA on a 2-core machine
+    import jax
+
+    if spec["cache_dir"]:
+        try:
+            from jaxtrack.cli import enable_compilation_cache  # what `jaxtrack track` does
+        except ImportError:  # pragma: no cover - the CLI helper moved: same settings by hand
+            def enable_compilation_cache(path):
+                jax.config.update("jax_compilation_cache_dir", path)
+                jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+        enable_compilation_cache(spec["cache_dir"])
+    import equinox as eqx
+
+    from jaxtrack.geometry import make_camera, rotation_error_deg, stack_cameras
+    from jaxtrack.io import load_mesh, read_sequence
+    from jaxtrack.track import Tracker, TrackerConfig, track_step
+
+    imported_s = time.time() - spec["launched"]
+    seq = read_sequence(spec["sequence"])
+    views = list(range(spec["cameras"]))
+    rig = stack_cameras([make_camera(seq.views[c].K, seq.views[c].width, seq.views[c].height, seq.views[c].T_cam_world[:3, :3],
+                                     seq.views[c].T_cam_world[:3, 3]) for c in views])
+    view0 = seq.views[0]
+    gt = view0.T_cam_obj[1]
+    T_cam0_world = np.asarray(view0.T_cam_world, np.float64)
+    T_world_gt = np.einsum("ij,fjk->fik", np.linalg.inv(T_cam0_world), gt)
+    cues = ALL_CUES if spec["cues"] == "all" else ("region",)
+    tracker = Tracker(load_mesh(seq.model_paths[1]), rig, config=TrackerConfig(cues=cues))
+
+    def frames(k):
+        return np.stack([seq.views[c].read_frame(k) for c in views])
+
+    def traces():
+        try:
+            return eqx.debug.get_num_traces(track_step)
+        except ValueError:  # the step is no longer wrapped in assert_max_traces: count nothing
+            return 0
+
+    t = time.perf_counter()
+    state = tracker.start(frames(0), T_world_gt[0])
+    start_s = time.perf_counter() - t
+    t = time.perf_counter()
+    state, result, info = tracker.step(state, frames(1))
+    first_step_s = time.perf_counter() - t
+    out = {"imported_s": imported_s, "start_s": start_s, "first_step_s": first_step_s, "ready_s": time.time() - spec["launched"],
+           "crop": list(info["crop_shape"] or ())}
+    if spec["mode"] == "warm":
+        return out
+    rot = [float(rotation_error_deg(np.asarray(result.T_world_root)[:3, :3], T_world_gt[1][:3, :3]))]
+    trans = [float(np.linalg.norm(np.asarray(result.T_world_root)[:3, 3] - T_world_gt[1][:3, 3]))]
+    total, step, sift, rounds, retraced, crops = [], [], [], [], 0, set()
+    prev = None
+    for k in range(2, seq.num_frames):
+        images = frames(k)
+        before = traces()
+        prev = state
+        state, result, info = tracker.step(state, images)
+        T = np.asarray(result.T_world_root)
+        rot.append(float(rotation_error_deg(T[:3, :3], T_world_gt[k][:3, :3])))
+        trans.append(float(np.linalg.norm(T[:3, 3] - T_world_gt[k][:3, 3])))
+        if traces() != before:
+            retraced += 1
+            continue
+        tm = info["timings"]
+        total.append(tm["total_s"])
+        step.append(tm.get("step_s", np.nan))
+        sift.append(tm.get("detect_s", 0.0) + tm.get("match_s", 0.0))
+        rounds.append(int(result.iterations))
+        crops.add(tuple(info["crop_shape"] or ()))
+    out.update({
+        "frame_ms": 1000.0 * float(np.median(total)) if total else float("nan"),
+        "step_ms": 1000.0 * float(np.median(step)) if step else float("nan"),
+        "sift_ms": 1000.0 * float(np.median(sift)) if sift else float("nan"),
+        "rounds": float(np.median(rounds)) if rounds else float("nan"),
+        "timed": len(total), "retraced": retraced, "crops": sorted(crops),
+        "rot_deg": float(np.mean(rot)), "trans_mm": float(np.mean(trans)), "max_rot_deg": float(np.max(rot)),
+    })
+    if spec["breakdown"] and prev is not None:
+        out["stages"] = stage_breakdown(tracker, prev, frames(seq.num_frames - 1), spec["repeats"])
+    return out
+
+
+def run_worker(spec: dict, timeout_s: float) -> dict:
+    """Launch `worker(spec)` in a fresh Python process and read back its JSON result."""
+    spec = dict(spec, launched=time.time())
+    proc = subprocess.run([sys.executable, __file__, "--worker", json.dumps(spec)], check=False, capture_output=True, text=True,
+                          timeout=timeout_s, env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    for line in proc.stdout.splitlines():
+        if line.startswith("RESULT "):
+            return json.loads(line[len("RESULT "):])
+    raise RuntimeError(f"bench_track worker {spec['cues']}:{spec['cameras']} ({spec['mode']}) failed with code "
+                       f"{proc.returncode}:\n{proc.stderr[-4000:]}")
+
+
+# --- the sequence and M3T ---------------------------------------------------------------------------
+def write_bench_sequence(root: pathlib.Path, cameras: int, frames: int, scale: float, preset: str | None = None):
+    """The textured box sequence (or a `PRESETS` entry), scaled; and the object's width in pixels in
+    frame 0 of camera 0."""
+    import dataclasses
+
+    import cv2
+
+    from jaxtrack.synth import PRESETS, SynthConfig, write_sequence
+
+    if preset is None:
+        cfg = SynthConfig(object="box", appearance="photo", texture_photo="chelsea", size_mm=170, background="coffee",
+                          motion="random", step_px=10, step_deg=3, seed=3)
+    else:
+        cfg = PRESETS[preset]
+    # Scaling the image scales the focal length and the motion in pixels with it (same scene, same motion).
+    cfg = dataclasses.replace(cfg, frames=frames, cameras=cameras, width=round(640 * scale), height=round(480 * scale),
+                              focal=cfg.focal * scale, step_px=cfg.step_px * scale)
+    write_sequence(cfg, root)
+    mask = cv2.imread(str(root / "000000" / "object_mask" / "000000.png"), cv2.IMREAD_GRAYSCALE) > 0
+    xs = np.nonzero(mask.any(axis=0))[0]
+    return root, int(xs.max() - xs.min() + 1) if len(xs) else 0
+
+
+def run_m3t(sequence: pathlib.Path, config: str, out_dir: pathlib.Path) -> dict:
+    """M3T (`region` or `regtex`) on camera 0, one thread: median ms per frame of its CSV `time`
+    column (the tracking cycle, image decoding excluded), frames after the first."""
+    csv = out_dir / f"m3t_{config}.csv"
+    proc = subprocess.run([str(M3T_RUN), str(sequence), "-o", str(csv), "--config", config], check=False, capture_output=True, text=True,
+                          timeout=900)
+    if proc.returncode != 0 or not csv.is_file():
+        raise RuntimeError(f"M3T {config} failed ({proc.returncode}): {proc.stderr[-2000:]}")
+    times = [float(line.rsplit(",", 1)[1]) for line in csv.read_text().splitlines()[1:] if line.strip()]
+    return {"ms": 1000.0 * float(np.median(times[1:])), "frames": len(times) - 1}
+
+
+# --- the report ----------------------------------------------------------------------------------------
+def _warm(warm) -> str:
+    if warm is None:
+        return "not measured (--quick)"
+    return f"{warm['ready_s']:.1f} ({warm['start_s']:.1f} / {warm['first_step_s']:.1f})"
+
+
+def _fmt(x, digits=1):
+    return "n/a" if x is None or not np.isfinite(x) else f"{x:.{digits}f}"
+
+
+def report(args, command, width_px, size, rows, m3t, load_start, load_end, elapsed_s) -> str:
+    import jax
+
+    lines = [
+        "# Tracker speed",
+        "",
+        f"Command: `{command}`  ",
+        (f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, {jax.devices()[0].platform}, "
+         f"JAX {jax.__version__}, float32; OpenCV single-threaded.  "),
+        (f"Load average (1, 5, 15 min) at the start {tuple(round(x, 2) for x in load_start)}, at the end "
+         f"{tuple(round(x, 2) for x in load_end)}; run took {elapsed_s / 60:.1f} min. "
+         + ("Other jobs shared the machine during this run: times are upper bounds (they vary ~2x between runs)."
+            if max(load_start[0], load_end[0], load_start[1]) > 1.5 else "")),
+        "",
+        (f"Sequence: synthetic textured box, {size[0]}x{size[1]}, box {width_px} px wide in frame 0 of camera 0, "
+         f"random 6-DoF motion (~{10 * args.scale:.0f} px, 3° per frame), {args.frames} frames; cameras on a ring, "
+         "the tracker's default configuration and parameters." if args.preset is None else
+         f"Sequence: the `{args.preset}` preset scaled to {size[0]}x{size[1]} (object {width_px} px wide in frame 0), "
+         f"{args.frames} frames, the tracker's default configuration and parameters."),
+        *(["", ("--quick: one configuration run in this process (cold = whatever this process had compiled before; "
+                "no warm-cache run); a smoke test of the script, not a measurement.")] if args.quick else []),
+        "",
+        ("| cues | cameras | crop | ms / frame | frames / s | jitted step ms | SIFT host ms | rounds | timed frames (retraced) "
+         "| first frame, cold cache (s) | of which start / first step | first frame, warm cache (s) (start / first step) "
+         "| mean rot ° / trans mm |"),
+        "|---|---:|---|---:|---:|---:|---:|---:|---|---:|---|---:|---|",
+    ]
+    for (cues, cams), (cold, warm) in rows.items():
+        crop = ", ".join(f"{c[0]}x{c[1]}" for c in cold.get("crops", [])) or "x".join(map(str, cold["crop"]))
+        fps = 1000.0 / cold["frame_ms"] if np.isfinite(cold["frame_ms"]) else float("nan")
+        lines.append(
+            f"| {'region' if cues == 'region' else 'region+flow+sift'} | {cams} | {crop} | {_fmt(cold['frame_ms'])} | "
+            f"{_fmt(fps, 2)} | {_fmt(cold['step_ms'])} | {_fmt(cold['sift_ms']) if cues == 'all' else '-'} | "
+            f"{_fmt(cold['rounds'], 0)} | {cold['timed']} ({cold['retraced']}) | {_fmt(cold['ready_s'])} | "
+            f"{_fmt(cold['start_s'])} / {_fmt(cold['first_step_s'])} | {_warm(warm)} | "
+            f"{_fmt(cold['rot_deg'], 2)} / {_fmt(cold['trans_mm'], 1)} |"
+        )
+    lines += [
+        "",
+        ("ms / frame: median host time of `Tracker.step` (crop, SIFT detection and matching on the host, the jitted "
+         "step, waiting for its result) over the frames after the first; frames that traced the step again (new crop "
+         "class or raster plan) are left out and counted in brackets. First frame: from launching a fresh Python process "
+         "(imports included, ~"
+         f"{_fmt(np.median([r[0]['imported_s'] for r in rows.values()]))} s) to the first tracked frame; cold = empty "
+         "on-disk compilation cache, warm = the cache the cold process filled (`jaxtrack track`'s settings). "
+         "start = `Tracker.start` (texture atlas, first render, appearance model: op-by-op dispatch), first step = "
+         "`Tracker.step` on frame 1 (compiles the step). Errors: mean over the tracked frames, against the ground truth."),
+    ]
+    with_stages = [(k, v[0]["stages"]) for k, v in rows.items() if "stages" in v[0]]
+    if with_stages:
+        header = " | ".join(f"{'region' if c == 'region' else 'all'}, {n} cam ({s['rounds']} rounds, crop {s['crop'][0]}x{s['crop'][1]})"
+                            for (c, n), s in with_stages)
+        lines += [
+            "",
+            "## Per-stage breakdown (ms per frame = ms per call x calls per frame)",
+            "",
+            ("Each stage jitted on its own and timed on the inputs of the last tracked frame (state at t, frames t+1; "
+             f"medians of {args.repeats}); calls per frame from the rounds the refinement ran on that frame. Render: "
+             "the model into every camera's crop (at χ_t for the motion cues, once per refinement round, at χ_{t+1} "
+             "for the occlusion map). Flow and SIFT (device): `motion_correspondences` with that cue alone, minus its "
+             "render. Segmentation: features, Φ0 = band_sdf, local densities and the level-set iterations of one round "
+             "(its render excluded). Shape matching: `contour_matches`. Solves: `solve_pose` on the fused rows. "
+             "Occlusion: texel observation, detection (eq. 9) and appearance update (eq. 10), its render excluded. "
+             "'whole step' is `Tracker.step` on the same inputs; separately jitted stages lose XLA's fusion across "
+             "stages, so the sum and the whole differ."),
+            "",
+            f"| stage | {header} |",
+            "|---|" + "---:|" * len(with_stages),
+        ]
+        for stage in STAGES:
+            cells = []
+            for _, s in with_stages:
+                if stage in s["ms"]:
+                    cells.append(f"{s['ms'][stage] * s['calls'][stage]:.1f} ({s['calls'][stage]} x {s['ms'][stage]:.2f})")
+                else:
+                    cells.append("-")
+            lines.append(f"| {stage} | {' | '.join(cells)} |")
+        sums = [sum(s["ms"][k] * s["calls"][k] for k in s["ms"]) for _, s in with_stages]
+        lines.append(f"| sum of the stages | {' | '.join(f'{x:.1f}' for x in sums)} |")
+        wholes = " | ".join(f"{s['whole_ms']:.1f}" for _, s in with_stages)
+        lines.append(f"| whole step (`Tracker.step`, same inputs) | {wholes} |")
+    lines += ["", "## DLR M3T on the same frames (camera 0)", ""]
+    if m3t is None:
+        lines.append("Skipped (--no-m3t)." if args.no_m3t else
+                     f"Skipped: the M3T baseline is not built on this machine ({M3T_BIN} missing; see {M3T_RUN.parent}/README.md).")
+    else:
+        lines += [
+            "| M3T config | ms / frame | frames / s | frames |",
+            "|---|---:|---:|---:|",
+        ] + [f"| {name} | {r['ms']:.2f} | {1000.0 / r['ms']:.0f} | {r['frames']} |" for name, r in m3t.items()]
+        lines += ["", ("M3T: monocular, one thread, its RBOT parameters (`../shared/baselines/m3t/run.sh`); ms = median of "
+                       "its CSV `time` column (the tracking cycle, image decoding excluded) over the frames after the first.")]
+    lines += ["", "## Where we stand against the goals (one camera)", ""] + goals(rows, m3t)
+    return "\n".join(lines) + "\n"
+
+
+def goals(rows, m3t) -> list[str]:
+    out = []
+    for cues, key, name in (("all", "all_fps", "all cues"), ("region", "region_fps", "region only")):
+        r = rows.get((cues, 1))
+        if r is None:
+            continue
+        fps = 1000.0 / r[0]["frame_ms"]
+        out.append(f"- {name}: {fps:.2f} frames/s (goal ≥ {GOALS[key]:.0f}): "
+                   f"{'met' if fps >= GOALS[key] else f'{GOALS[key] / fps:.0f}x too slow'}.")
+    one = [r for (c, n), r in rows.items() if n == 1]
+    if one and all(r[1] is not None for r in one):
+        cold = max(r[0]["ready_s"] for r in one)
+        warm = max(r[1]["ready_s"] for r in one)
+        out.append(f"- first frame, empty compile cache: up to {cold:.0f} s (goal ≤ {GOALS['cold_s']:.0f}): "
+                   f"{'met' if cold <= GOALS['cold_s'] else 'not met'}; warm cache: up to {warm:.1f} s "
+                   f"(goal ≤ {GOALS['warm_s']:.0f}): {'met' if warm <= GOALS['warm_s'] else 'not met'}.")
+    for (cues, cams), (cold, _) in rows.items():
+        s = cold.get("stages")
+        if s is None or cams != 1:
+            continue
+        per = {k: s["ms"][k] * s["calls"][k] for k in s["ms"]}
+        top = sorted(per.items(), key=lambda kv: -kv[1])[:3]
+        total = sum(per.values())
+        out.append(f"- what dominates ({'all cues' if cues == 'all' else 'region only'}, 1 camera): "
+                   + ", ".join(f"{k} {v:.0f} ms ({100 * v / total:.0f} %)" for k, v in top) + ".")
+    if m3t:
+        out.append("- M3T on the same frames: " + ", ".join(f"{k} {v['ms']:.1f} ms" for k, v in m3t.items()) + ".")
+    return out
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="smoke run in this process: region, 1 camera, 160x120, 4 frames")
+    ap.add_argument("--configs", default="region:1,all:1,all:2,all:4", help="cue set (region|all) : cameras, comma-separated")
+    ap.add_argument("--frames", type=int, default=8, help="frames of the sequence (the first initialises, the second compiles)")
+    ap.add_argument("--scale", type=float, default=1.0, help="image scale (1 = 640x480, f = 700)")
+    ap.add_argument("--preset", default=None, help="a jaxtrack.synth preset instead of the textured box")
+    ap.add_argument("--repeats", type=int, default=5, help="repeats per stage timing")
+    ap.add_argument("--breakdown-cameras", default="1,2,3,4", help="camera counts that get the per-stage breakdown ('' = none)")
+    ap.add_argument("--budget-min", type=float, default=None,
+                    help="start no new configuration after this many minutes (the rest is reported as not run)")
+    ap.add_argument("--no-m3t", action="store_true", help="skip the M3T baseline")
+    ap.add_argument("--timeout", type=float, default=1200, help="seconds per subprocess")
+    ap.add_argument("--out", default=None, help="markdown output (default experiments/results/bench_track.md; --quick: none)")
+    ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.worker is not None:
+        print("RESULT " + json.dumps(worker(json.loads(args.worker))), flush=True)
+        return None
+    if args.quick:  # the same sequence and configuration as track_presets.py --quick (one compiled program)
+        args.configs, args.frames, args.scale, args.repeats, args.preset = "region:1", 4, 0.25, 1, "occluded-box"
+    if args.frames < 3:
+        raise SystemExit("bench_track: --frames must be ≥ 3 (initialise, compile, time)")
+    configs = parse_configs(args.configs)
+    command = " ".join(["python experiments/bench_track.py", *(sys.argv[1:] if argv is None else argv)])
+    started, load_start = time.perf_counter(), os.getloadavg()
+    work = pathlib.Path(tempfile.mkdtemp(prefix="bench_track_"))
+    try:
+        cameras = max(n for _, n in configs)
+        seq, width_px = write_bench_sequence(work / "seq", cameras, args.frames, args.scale, args.preset)
+        size = (round(640 * args.scale), round(480 * args.scale))
+        rows, skipped = {}, []
+        for cues, cams in configs:
+            if args.budget_min is not None and time.perf_counter() - started > 60 * args.budget_min:
+                skipped.append(f"{cues}:{cams}")
+                continue
+            cache = work / f"xla_{cues}_{cams}"  # a fresh, empty on-disk cache per configuration
+            spec = {"sequence": str(seq), "cues": cues, "cameras": cams, "cache_dir": str(cache), "repeats": args.repeats,
+                    "breakdown": str(cams) in args.breakdown_cameras.split(",")}
+            t = time.perf_counter()
+            if args.quick:  # in this process: no fresh interpreter, no cache, no warm run
+                cold, warm = worker(dict(spec, mode="cold", cache_dir=None, launched=time.time())), None
+            else:
+                cold = run_worker(dict(spec, mode="cold"), args.timeout)
+                warm = run_worker(dict(spec, mode="warm"), args.timeout)
+            rows[(cues, cams)] = (cold, warm)
+            print(f"[bench_track] {cues}:{cams} {cold['frame_ms']:.0f} ms/frame, first frame {cold['ready_s']:.0f} s cold, "
+                  f"{_warm(warm)} warm ({time.perf_counter() - t:.0f} s)", file=sys.stderr, flush=True)
+        m3t = None
+        if not args.no_m3t and m3t_available():
+            m3t = {name: run_m3t(seq, name, work) for name in ("region", "regtex")}
+        text = report(args, command, width_px, size, rows, m3t, load_start, os.getloadavg(), time.perf_counter() - started)
+        if skipped:
+            text += f"\nNot run, the time budget (--budget-min {args.budget_min:g}) was spent: {', '.join(skipped)}.\n"
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    print(text)
+    out = args.out if args.out is not None else (None if args.quick else str(RESULTS / "bench_track.md"))
+    if out is not None:
+        pathlib.Path(out).parent.mkdir(parents=True, exist_ok=True)
+        pathlib.Path(out).write_text(text)
+    return rows, m3t
+
+
+if __name__ == "__main__":
+    main()
