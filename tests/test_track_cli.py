@@ -54,7 +54,8 @@ class _FakeTracker:
         _FakeTracker.built.append(self)
 
     def start(self, frames, T_world_root, theta=None):
-        self.k, self.start_pose = 0, np.asarray(T_world_root, np.float64)
+        self.starts = getattr(self, "starts", []) + [np.asarray(T_world_root, np.float64)]
+        self.start_pose = self.starts[0]
         return types.SimpleNamespace(T_world_root=self.start_pose, theta=np.zeros(0))
 
     def step(self, state, frames):
@@ -142,6 +143,18 @@ def test_video_as_png_folder_with_chosen_cues_and_init_pose(seq_dir, fake, tmp_p
     np.testing.assert_allclose(view.T_cam_world @ fake.built[0].start_pose, T0, atol=1e-9)
     assert sorted(p.name for p in pngs.iterdir()) == ["000000.png", "000001.png"]
     assert len(read_bop_results(tmp_path / "r.csv")) == 2
+
+
+def test_reset_on_failure_restarts_from_the_truth_and_is_recorded(seq_dir, fake, tmp_path, capsys):
+    out = tmp_path / "rbot.csv"
+    assert main(["track", str(seq_dir), "-o", str(out), "--reset-on-failure", "--quiet", "--no-cache"]) == 0
+    assert "resets 1" in capsys.readouterr().out
+    np.testing.assert_allclose(fake.built[0].starts[1], fake.truth(2), atol=1e-9)  # frame 2 failed: restarted there
+    records = [json.loads(line) for line in out.with_name("rbot.frames.jsonl").read_text().splitlines()]
+    assert [r["reset"] for r in records] == [False, False, True]
+    assert main(["eval", str(out), str(seq_dir)]) == 0
+    text = capsys.readouterr().out
+    assert "resets (RBOT protocol): 1" in text and "| 2 | 15.000 |" in text and "LOST (reset) |" in text
 
 
 def test_two_views_tile_the_overlay_and_write_rows_per_view(fake, tmp_path, capsys):
