@@ -245,20 +245,23 @@ class OverlayRecorder:
         writer: an `OverlayWriter` (or anything with `write(frame)`).
         vertices: (V, 3) mesh vertices in model coordinates (mm); faces: (F, 3).
         K: (C, 3, 3) intrinsics of the tracked cameras; dist: (C, 5) or None.
+        thickness: line width in pixels; None: 2 for a video (its codec's halved chroma resolution washes
+            1-px colour lines out) and for frames from 400 px wide, else 1.
     """
 
     def __init__(self, writer, vertices: npt.ArrayLike, faces: npt.ArrayLike, K: npt.ArrayLike,
-                 dist: npt.ArrayLike | None = None):
+                 dist: npt.ArrayLike | None = None, thickness: int | None = None):
         self.writer = writer
+        self.thickness = thickness
         self.vertices = np.asarray(vertices, np.float64)
         self.faces = np.asarray(faces, np.int64)
         self.K = np.asarray(K, np.float64)
         self.dist = None if dist is None else np.asarray(dist, np.float64)
 
     def __call__(self, record) -> None:
-        # 1-px lines on small frames; 2 px from 400 px wide, where a video codec's halved chroma
-        # resolution would wash 1-px lines out.
-        thickness = 1 if record.images.shape[2] < 400 else 2
+        thickness = self.thickness
+        if thickness is None:
+            thickness = 2 if getattr(self.writer, "is_video", False) or record.images.shape[2] >= 400 else 1
         p_cam = [self.vertices @ T[:3, :3].T + T[:3, 3] for T in np.asarray(record.T_cam_obj, np.float64)]
         text = f"frame {record.im_id}  {record.status}  conf {record.confidence:.2f}" + ("  RESET" if record.reset else "")
         self.writer.write(overlay_frame(record.images, p_cam, self.faces, self.K, self.dist, record.region_phi,
