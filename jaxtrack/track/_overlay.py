@@ -3,7 +3,7 @@
 Host code (numpy + OpenCV), called once per frame while tracking so no frame is kept in memory:
 
     with OverlayWriter("overlay.mp4", (H, C * W)) as video:      # or a folder of PNGs
-        track_sequence(seq, on_frame=lambda rec: video.write(overlay_frame(rec, mesh, K, dist)))
+        run = track_sequence(seq, on_frame=OverlayRecorder(video, vertices, faces, K))   # K: (C, 3, 3)
 
 The model contour is the outline of the mesh's silhouette at the estimated pose: every triangle with all
 three vertices in front of the camera is projected (OpenCV distortion included) and filled, and the
@@ -16,9 +16,13 @@ from __future__ import annotations
 
 import os
 import pathlib
+from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
+
+if TYPE_CHECKING:
+    from ._sequence import FrameRecord
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v")
 MODEL_COLOUR = (60, 255, 60)  # RGB: green
@@ -234,7 +238,7 @@ class OverlayWriter:
     def __enter__(self):
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
 
@@ -249,7 +253,7 @@ class OverlayRecorder:
             1-px colour lines out) and for frames from 400 px wide, else 1.
     """
 
-    def __init__(self, writer, vertices: npt.ArrayLike, faces: npt.ArrayLike, K: npt.ArrayLike,
+    def __init__(self, writer: OverlayWriter, vertices: npt.ArrayLike, faces: npt.ArrayLike, K: npt.ArrayLike,
                  dist: npt.ArrayLike | None = None, thickness: int | None = None):
         self.writer = writer
         self.thickness = thickness
@@ -258,7 +262,7 @@ class OverlayRecorder:
         self.K = np.asarray(K, np.float64)
         self.dist = None if dist is None else np.asarray(dist, np.float64)
 
-    def __call__(self, record) -> None:
+    def __call__(self, record: FrameRecord) -> None:
         thickness = self.thickness
         if thickness is None:
             thickness = 2 if getattr(self.writer, "is_video", False) or record.images.shape[2] >= 400 else 1
