@@ -20,7 +20,7 @@ timed on the inputs of the last tracked frame (medians of repeats), then multipl
 frame (rounds of the refinement loop as run on that frame). The sum is shown beside the whole step.
 
     python experiments/bench_track.py                 # writes experiments/results/bench_track.md
-    python experiments/bench_track.py --quick --out /tmp/bench_track.md   # smoke run (160x120, region only)
+    python experiments/bench_track.py --quick --out /tmp/bench_track.md   # smoke run (occluded-box at 96x72, region only)
 """
 
 from __future__ import annotations
@@ -492,7 +492,8 @@ def goals(rows, m3t) -> list[str]:
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--quick", action="store_true", help="smoke run in this process: region, 1 camera, 160x120, 4 frames")
+    ap.add_argument("--quick", action="store_true",
+                    help="smoke run in this process: region, 1 camera, occluded-box at 96x72 (crop = whole frame), 4 frames")
     ap.add_argument("--configs", default="region:1,all:1,all:2,all:4", help="cue set (region|all) : cameras, comma-separated")
     ap.add_argument("--frames", type=int, default=8, help="frames of the sequence (the first initialises, the second compiles)")
     ap.add_argument("--scale", type=float, default=1.0, help="image scale (1 = 640x480, f = 700)")
@@ -510,7 +511,7 @@ def main(argv=None):
         print("RESULT " + json.dumps(worker(json.loads(args.worker))), flush=True)
         return None
     if args.quick:  # the same sequence and configuration as track_presets.py --quick (one compiled program)
-        args.configs, args.frames, args.scale, args.repeats, args.preset = "region:1", 4, 0.25, 1, "occluded-box"
+        args.configs, args.frames, args.scale, args.repeats, args.preset = "region:1", 4, 0.15, 1, "occluded-box"
     if args.frames < 3:
         raise SystemExit("bench_track: --frames must be ≥ 3 (initialise, compile, time)")
     configs = parse_configs(args.configs)

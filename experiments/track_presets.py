@@ -19,7 +19,7 @@ ground truth of camera 0 are compared (stereo-noise: jaxtrack uses both cameras,
 
     python experiments/track_presets.py                       # writes experiments/results/track_presets.md
     python experiments/track_presets.py --cues region,region+flow+sift --frames 15 --scale 0.5
-    python experiments/track_presets.py --quick --out /tmp/p.md   # smoke run (one preset, region, 160x120)
+    python experiments/track_presets.py --quick --out /tmp/p.md   # smoke run (occluded-box at 96x72, region)
 """
 
 from __future__ import annotations
@@ -239,7 +239,7 @@ def report(args, command, presets, subsets, rows, sizes, load_start, load_end, e
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--quick", action="store_true", help="smoke run: occluded-box, region, 160x120, 4 frames")
+    ap.add_argument("--quick", action="store_true", help="smoke run: occluded-box, region, 96x72, 4 frames")
     ap.add_argument("--presets", default=",".join(PRESET_NAMES))
     ap.add_argument("--cues", default=",".join(SUBSETS), help="cue subsets joined with '+', comma-separated")
     ap.add_argument("--frames", type=int, default=None, help="frames per preset (default: the preset's own)")
@@ -252,7 +252,7 @@ def main(argv=None):
     ap.add_argument("--out", default=None, help="markdown output (default experiments/results/track_presets.md; --quick: none)")
     args = ap.parse_args(argv)
     if args.quick:  # the same sequence and configuration as bench_track.py --quick (one compiled program)
-        args.presets, args.cues, args.frames, args.scale = "occluded-box", "region", 4, 0.25
+        args.presets, args.cues, args.frames, args.scale = "occluded-box", "region", 4, 0.15
     if args.frames is not None and args.frames < 2:
         raise SystemExit("track_presets: --frames must be ≥ 2")
     presets = tuple(p.strip() for p in args.presets.split(",") if p.strip())

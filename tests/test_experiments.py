@@ -48,7 +48,7 @@ def _markdown_rows(text, first_cell):
 
 @pytest.fixture(scope="module")
 def track_smoke(tmp_path_factory):
-    """bench_track --quick, then track_presets --quick on the same 160x120 frames and configuration (the
+    """bench_track --quick, then track_presets --quick on the same 96x72 frames and configuration (the
     second run reuses the first one's compiled step); M3T columns when the baseline is built."""
     out = tmp_path_factory.mktemp("track_smoke")
     bench = _load("bench_track")
