@@ -26,7 +26,7 @@ import numpy as np
 
 from .._status import Status
 from ..cues.flow import articulated_params, rigid_params
-from ..cues.levelset import initial_state, projected_boxes, region_crop, region_params
+from ..cues.levelset import RegionProblem, densities_at_pose, initial_state, projected_boxes, region_crop, region_params
 from ..cues.occlusion import (
     OcclusionParams,
     init_appearance,
@@ -43,6 +43,7 @@ from ..solve import CueWeights
 from ._step import FrameResult, TrackerConfig, TrackerParams, TrackerSetup, TrackerState, track_step
 
 _track_step_jit = eqx.filter_jit(track_step)
+_densities_at_pose_jit = eqx.filter_jit(densities_at_pose)
 
 
 def default_params(
@@ -109,6 +110,7 @@ class Tracker:
         self.replans = 0
         self._default_params: dict = {}
         self.last_motion_px = 0.0
+        self.crop_shape: tuple[int, int] | None = None  # kept while the object fits (one compile per class)
 
     @property
     def num_cameras(self) -> int:
@@ -164,7 +166,9 @@ class Tracker:
         boxes[:, [0, 2]] = np.clip(boxes[:, [0, 2]], 0, W - 1)
         boxes[:, [1, 3]] = np.clip(boxes[:, [1, 3]], 0, H - 1)
         margin = self.margin + int(np.ceil(1.5 * self.last_motion_px))
-        return region_crop(boxes, (H, W), margin, self.config.region.density_factor)
+        offsets, shape = region_crop(boxes, (H, W), margin, self.config.region.density_factor, keep=self.crop_shape)
+        self.crop_shape = shape
+        return offsets, shape
 
     def params_for(self, crop_shape) -> TrackerParams:
         """The parameters used for a crop size: the user's, or the defaults with ν = 0.001 |Ω|^0.7."""
@@ -190,6 +194,7 @@ class Tracker:
         on_screen = (boxes[:, 2] >= 0) & (boxes[:, 0] < W) & (boxes[:, 3] >= 0) & (boxes[:, 1] < H)
         if not np.any(on_screen):
             raise ValueError("the initial pose puts the object outside every camera's image (T_world_root)")
+        self.last_motion_px = 0.0
         if self.plan is None:
             self._replan(T, theta)
         if self.atlas is None:
@@ -201,7 +206,16 @@ class Tracker:
         sil, appearance = self._initial_appearance(jnp.asarray(frames), T, theta)
         f = self.config.region.density_factor
         region = initial_state(self.num_cameras, H, W, 3 + int(self.config.region.texture), f, self.dtype)
-        self.last_motion_px = 0.0
+        if "region" in self.config.cues:
+            # The first frame's pose is known: learn the local densities there, so the next frame's first
+            # level-set iterations use densities of the right regions (Section IV), not ones learnt
+            # from the predicted pose on the new frame.
+            offsets, crop_shape = self.crop(T, theta, boxes)
+            crops = jnp.stack([jnp.asarray(frames[c, y:y + crop_shape[0], x:x + crop_shape[1]], self.dtype)
+                               for c, (y, x) in enumerate(offsets)])
+            problem = RegionProblem(self.mesh, self.model, self.cameras, self.plan, self.config.region)
+            region = _densities_at_pose_jit(problem, crops, jnp.asarray(offsets), region, self.params_for(crop_shape).region,
+                                            T, theta)
         return TrackerState(
             T_world_root=T, theta=theta, images=jnp.asarray(frames, self.dtype),
             data_weight=jnp.ones((self.num_cameras, H, W), self.dtype), visible=sil, region=region, appearance=appearance,

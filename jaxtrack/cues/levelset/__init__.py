@@ -33,6 +33,7 @@ from ._refine import RegionResult as RegionResult
 from ._refine import RegionState as RegionState
 from ._refine import contour_matches as contour_matches
 from ._refine import crop_camera as crop_camera
+from ._refine import densities_at_pose as densities_at_pose
 from ._refine import initial_state as initial_state
 from ._refine import refine_pose_region as refine_pose_region
 from ._refine import segment as segment

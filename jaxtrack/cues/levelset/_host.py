@@ -16,7 +16,6 @@ from ...geometry import (
 )
 from ...render import Mesh, RasterPlan, face_extents, merge_plans, plan_raster
 from ..flow import ROI_SIZES
-from ._densities import check_grid
 from ._energy import RegionParams, region_params
 from ._refine import RegionConfig, RegionProblem, RegionResult, RegionState, _refine_jit, initial_state
 
@@ -45,12 +44,17 @@ def projected_boxes(mesh: Mesh, cameras: Camera, T_world_root, theta=None, model
     return np.asarray(boxes)
 
 
-def region_crop(boxes, image_shape: tuple[int, int], margin: int = 24, factor: int = 4, sizes=ROI_SIZES):
+def region_crop(boxes, image_shape: tuple[int, int], margin: int = 24, factor: int = 4, sizes=ROI_SIZES,
+                keep: tuple[int, int] | None = None, shrink: float = 0.5):
     """One static crop size for all cameras and each camera's offset.
 
     Each box grows by `margin` on every side; the largest need over the cameras is rounded up to the
     next class of `sizes` (the flow cue's `ROI_SIZES`, capped at the image side) on each axis; the
     crop is centred on each box, kept inside the image and aligned to the density grid `factor`.
+
+    `keep`: the crop size used last. It is kept while the need fits in it and is more than `shrink`
+    of it on both axes, so an object whose size hovers near a class boundary does not switch
+    between two compiled programs (each size class is one compilation of the caller's step).
 
     Returns:
         (offsets (C, 2) int32 (y0, x0), crop_shape (h, w)).
@@ -62,7 +66,8 @@ def region_crop(boxes, image_shape: tuple[int, int], margin: int = 24, factor: i
     if not np.all(np.isfinite(boxes)):
         raise ValueError("region_crop: the object is not in front of every camera (non-finite box)")
     H, W = image_shape
-    check_grid((H, W), factor)
+    if factor < 1:
+        raise ValueError(f"region_crop: factor must be ≥ 1, got {factor}")
 
     def side(need, n):
         size = next((s for s in sizes if s >= need), int(need))
@@ -71,6 +76,10 @@ def region_crop(boxes, image_shape: tuple[int, int], margin: int = 24, factor: i
     need_w = np.max(boxes[:, 2] - boxes[:, 0] + 1 + 2 * margin)
     need_h = np.max(boxes[:, 3] - boxes[:, 1] + 1 + 2 * margin)
     cw, ch = side(need_w, W), side(need_h, H)
+    if keep is not None:
+        kh, kw = keep
+        if min(need_h, H) <= kh <= H and min(need_w, W) <= kw <= W and need_h > shrink * kh and need_w > shrink * kw:
+            ch, cw = kh, kw
     cw, ch = cw - cw % factor, ch - ch % factor
     offsets = []
     for x0, y0, x1, y1 in boxes:

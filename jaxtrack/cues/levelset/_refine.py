@@ -87,9 +87,14 @@ class RegionState(eqx.Module):
 
 
 def initial_state(num_cameras: int, height: int, width: int, channels: int, factor: int = 4, dtype=jnp.float32) -> RegionState:
-    """An empty `RegionState` (no densities yet)."""
-    check_grid((height, width), factor)
-    shape = (num_cameras, 2, height // factor, width // factor, channels)
+    """An empty `RegionState` (no densities yet).
+
+    The coarse density grid covers the frame rounded up to whole cells (crops and their offsets are
+    multiples of `factor`, so a frame of any size works; its last partial cell is never read).
+    """
+    if factor < 1:
+        raise ValueError(f"density factor must be ≥ 1, got {factor}")
+    shape = (num_cameras, 2, -(-height // factor), -(-width // factor), channels)
     return RegionState(
         phi=-jnp.ones((num_cameras, height, width), dtype),
         densities=LocalDensities(jnp.zeros(shape, dtype), jnp.ones(shape, dtype)),
@@ -322,16 +327,50 @@ def refine_pose_region(
     status = first_failure(status, status_where(settled, Status.OK, Status.MAX_STEPS))
 
     # Carry the segmentation and densities in full-frame coordinates.
+    new_state = _paste_state(state, phi, dens, offsets, f)
+    return RegionResult(T, theta, status.astype(jnp.int32), it, num_matches.astype(jnp.int32), corr, new_state, phi0, phi)
+
+
+def densities_at_pose(problem: RegionProblem, images, offsets, state: RegionState, params: RegionParams, T_world_root, theta):
+    """The region state of a frame whose pose is known (the tracker's first frame). Jittable.
+
+    The local densities are learnt from the model silhouette at (T, Θ), so the next frame's first
+    level-set iterations use densities of the right regions ("the first iterations of a new frame use
+    the previous frame's densities", Section IV) instead of ones learnt from a predicted pose.
+
+    Args:
+        problem, images (C, h, w, 3) crops at offsets (C, 2), state: as for `refine_pose_region`.
+
+    Returns:
+        `RegionState` with Φ = Φ0(χ) and the densities of frame t in full-frame coordinates.
+    """
+    config, f = problem.config, problem.config.density_factor
+    crop_shape = images.shape[1:3]
+    check_grid(crop_shape, f)
+    dtype = T_world_root.dtype
+    cams = crop_camera(problem.cameras, offsets, crop_shape)
+
+    def per_camera(cam, image):
+        out = render(problem.mesh, cam, T_world_root, theta, problem.model, problem.plan)
+        phi0 = band_sdf(out.face_id >= 0).astype(dtype)
+        return phi0, _densities(feature_channels(image, config.texture).astype(dtype), phi0, params.density_band, params, f)
+
+    phi0, dens = jax.vmap(per_camera)(cams, images)
+    return _paste_state(state, phi0, dens, offsets, f)
+
+
+def _paste_state(state: RegionState, phi, dens: LocalDensities, offsets, f: int) -> RegionState:
+    """Crop-sized Φ and densities (C, ...) written into the full-frame `RegionState`."""
+    dtype = phi.dtype
     new_phi = jax.vmap(lambda full, part, off: paste_window(jnp.full_like(full, -1.0), part, off))(state.phi.astype(dtype), phi, offsets)
     paste_dens = jax.vmap(lambda full, part, off: jnp.moveaxis(paste_window(jnp.moveaxis(full, 0, 2), jnp.moveaxis(part, 0, 2), off // f), 2, 0))
-    new_state = RegionState(
+    return RegionState(
         phi=new_phi,
         densities=LocalDensities(
             paste_dens(state.densities.mean.astype(dtype), dens.mean, offsets), paste_dens(state.densities.var.astype(dtype), dens.var, offsets)
         ),
         has_densities=jnp.ones_like(state.has_densities),
     )
-    return RegionResult(T, theta, status.astype(jnp.int32), it, num_matches.astype(jnp.int32), corr, new_state, phi0, phi)
 
 
 _refine_jit = eqx.filter_jit(refine_pose_region)
