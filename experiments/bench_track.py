@@ -173,22 +173,24 @@ def stage_breakdown(tracker, state, frames_np, repeats: int) -> dict:
         rc, rp = config.region, params.region
         f = rc.density_factor
 
-        def segmentation(images, T, th):
-            def one(cam, image):
+        # The feature channels are computed once per refinement, before its rounds: not part of a round.
+        features = jax.jit(jax.vmap(lambda im: feature_channels(im, rc.texture).astype(dtype)))(crops_t1)
+
+        def segmentation(features, T, th):
+            def one(cam, feats):
                 ren = render(tracker.mesh, cam, T, th, model, tracker.plan)
                 phi0 = band_sdf(ren.face_id >= 0).astype(dtype)
-                feats = feature_channels(image, rc.texture).astype(dtype)
                 w_obj, w_bg = region_memberships(phi0, rp.density_band)
                 dens = local_densities(feats, w_obj, rp.rho, rp.kappa, rp.sigma_min, f, weight_background=w_bg)
                 phi, _ = segment(feats, phi0, phi0, dens, rp, rc)
                 return phi0, phi, ren
 
-            return jax.vmap(one)(cams, images)
+            return jax.vmap(one)(cams, features)
 
         seg = eqx.filter_jit(segmentation)
-        phi0, phi, ren = seg(crops_t1, T_new, theta_new)
-        # segmentation = features + Φ0 + densities + level-set iterations, without the render inside it
-        out["ms"]["segmentation"] = max(_median_ms(lambda: seg(crops_t1, T_new, theta_new)[1], repeats) - out["ms"]["render"], 0.0)
+        phi0, phi, ren = seg(features, T_new, theta_new)
+        # segmentation = Φ0 + densities + level-set iterations + new densities, without the render inside it
+        out["ms"]["segmentation"] = max(_median_ms(lambda: seg(features, T_new, theta_new)[1], repeats) - out["ms"]["render"], 0.0)
         match = eqx.filter_jit(lambda a, b, r: jax.vmap(
             lambda p0, p, s, pm, pa: contour_matches(p0, p, s, pm, pa, rp, rc.capacity, rc.matching))(a, b, r.face_id >= 0, r.p_model, r.part_id))
         out["ms"]["shape matching"] = _median_ms(lambda: match(phi0, phi, ren)[4], repeats)
@@ -274,11 +276,11 @@ def worker(spec: dict) -> dict:
     rot = [float(rotation_error_deg(np.asarray(result.T_world_root)[:3, :3], T_world_gt[1][:3, :3]))]
     trans = [float(np.linalg.norm(np.asarray(result.T_world_root)[:3, 3] - T_world_gt[1][:3, 3]))]
     total, step, sift, rounds, retraced, crops = [], [], [], [], 0, set()
-    prev = None
+    prev = prev_motion_px = None
     for k in range(2, seq.num_frames):
         images = frames(k)
         before = traces()
-        prev = state
+        prev, prev_motion_px = state, tracker.last_motion_px
         state, result, info = tracker.step(state, images)
         T = np.asarray(result.T_world_root)
         rot.append(float(rotation_error_deg(T[:3, :3], T_world_gt[k][:3, :3])))
@@ -301,6 +303,7 @@ def worker(spec: dict) -> dict:
         "rot_deg": float(np.mean(rot)), "trans_mm": float(np.mean(trans)), "max_rot_deg": float(np.max(rot)),
     })
     if spec["breakdown"] and prev is not None:
+        tracker.last_motion_px = prev_motion_px  # the crop margin of that frame: the same crop class and program
         out["stages"] = stage_breakdown(tracker, prev, frames(seq.num_frames - 1), spec["repeats"])
     return out
 
@@ -354,6 +357,19 @@ def run_m3t(sequence: pathlib.Path, config: str, out_dir: pathlib.Path) -> dict:
 
 
 # --- the report ----------------------------------------------------------------------------------------
+def source_state() -> str:
+    """The commit measured, and whether the library had uncommitted changes (work in progress)."""
+    root = pathlib.Path(__file__).resolve().parents[1]
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "jaxtrack"], cwd=root, capture_output=True, text=True,
+                               check=True).stdout.split("\n")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown (not a git checkout)"
+    changed = sorted(line[3:] for line in dirty if line.strip())
+    return f"commit {head}" + (f" with uncommitted changes in {', '.join(changed)}" if changed else "")
+
+
 def _warm(warm) -> str:
     if warm is None:
         return "not measured (--quick)"
@@ -373,6 +389,7 @@ def report(args, command, width_px, size, rows, m3t, load_start, load_end, elaps
         f"Command: `{command}`  ",
         (f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, {jax.devices()[0].platform}, "
          f"JAX {jax.__version__}, float32; OpenCV single-threaded.  "),
+        f"Source: {source_state()}  ",
         (f"Load average (1, 5, 15 min) at the start {tuple(round(x, 2) for x in load_start)}, at the end "
          f"{tuple(round(x, 2) for x in load_end)}; run took {elapsed_s / 60:.1f} min. "
          + ("Other jobs shared the machine during this run: times are upper bounds (they vary ~2x between runs)."
@@ -424,8 +441,8 @@ def report(args, command, width_px, size, rows, m3t, load_start, load_end, elaps
              f"medians of {args.repeats}); calls per frame from the rounds the refinement ran on that frame. Render: "
              "the model into every camera's crop (at χ_t for the motion cues, once per refinement round, at χ_{t+1} "
              "for the occlusion map). Flow and SIFT (device): `motion_correspondences` with that cue alone, minus its "
-             "render. Segmentation: features, Φ0 = band_sdf, local densities and the level-set iterations of one round "
-             "(its render excluded). Shape matching: `contour_matches`. Solves: `solve_pose` on the fused rows. "
+             "render. Segmentation: Φ0 = band_sdf, local densities, the level-set iterations and the new densities of one "
+             "round (its render excluded; the feature channels, once per frame, are not timed). Shape matching: `contour_matches`. Solves: `solve_pose` on the fused rows. "
              "Occlusion: texel observation, detection (eq. 9) and appearance update (eq. 10), its render excluded. "
              "'whole step' is `Tracker.step` on the same inputs; separately jitted stages lose XLA's fusion across "
              "stages, so the sum and the whole differ."),
@@ -522,7 +539,7 @@ def main(argv=None):
         cameras = max(n for _, n in configs)
         seq, width_px = write_bench_sequence(work / "seq", cameras, args.frames, args.scale, args.preset)
         size = (round(640 * args.scale), round(480 * args.scale))
-        rows, skipped = {}, []
+        rows, skipped, failed = {}, [], []
         for cues, cams in configs:
             if args.budget_min is not None and time.perf_counter() - started > 60 * args.budget_min:
                 skipped.append(f"{cues}:{cams}")
@@ -534,17 +551,27 @@ def main(argv=None):
             if args.quick:  # in this process: no fresh interpreter, no cache, no warm run
                 cold, warm = worker(dict(spec, mode="cold", cache_dir=None, launched=time.time())), None
             else:
-                cold = run_worker(dict(spec, mode="cold"), args.timeout)
-                warm = run_worker(dict(spec, mode="warm"), args.timeout)
+                try:
+                    cold = run_worker(dict(spec, mode="cold"), args.timeout)
+                    warm = run_worker(dict(spec, mode="warm"), args.timeout)
+                except (RuntimeError, subprocess.TimeoutExpired) as e:  # report it and go on with the others
+                    failed.append(f"{cues}:{cams} ({type(e).__name__}: {str(e).strip().splitlines()[-1][:300]})")
+                    print(f"[bench_track] {failed[-1]}", file=sys.stderr, flush=True)
+                    continue
             rows[(cues, cams)] = (cold, warm)
             print(f"[bench_track] {cues}:{cams} {cold['frame_ms']:.0f} ms/frame, first frame {cold['ready_s']:.0f} s cold, "
                   f"{_warm(warm)} warm ({time.perf_counter() - t:.0f} s)", file=sys.stderr, flush=True)
         m3t = None
         if not args.no_m3t and m3t_available():
-            m3t = {name: run_m3t(seq, name, work) for name in ("region", "regtex")}
+            try:
+                m3t = {name: run_m3t(seq, name, work) for name in ("region", "regtex")}
+            except (RuntimeError, subprocess.TimeoutExpired) as e:
+                failed.append(f"M3T ({type(e).__name__}: {str(e).strip().splitlines()[-1][:300]})")
         text = report(args, command, width_px, size, rows, m3t, load_start, os.getloadavg(), time.perf_counter() - started)
         if skipped:
             text += f"\nNot run, the time budget (--budget-min {args.budget_min:g}) was spent: {', '.join(skipped)}.\n"
+        if failed:
+            text += "\nFailed: " + "; ".join(failed) + "\n"
     finally:
         shutil.rmtree(work, ignore_errors=True)
     print(text)

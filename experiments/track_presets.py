@@ -157,6 +157,19 @@ def run_m3t(seq, config: str, reset: bool, out_dir: pathlib.Path) -> dict:
     return out
 
 
+def source_state() -> str:
+    """The commit measured, and whether the library had uncommitted changes (work in progress)."""
+    root = pathlib.Path(__file__).resolve().parents[1]
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "jaxtrack"], cwd=root, capture_output=True, text=True,
+                               check=True).stdout.split("\n")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown (not a git checkout)"
+    changed = sorted(line[3:] for line in dirty if line.strip())
+    return f"commit {head}" + (f" with uncommitted changes in {', '.join(changed)}" if changed else "")
+
+
 def _pct(x) -> str:
     return "n/a" if x is None or not np.isfinite(x) else f"{100 * x:.0f} %"
 
@@ -165,7 +178,7 @@ def _num(x, digits=2) -> str:
     return "n/a" if x is None or not np.isfinite(x) else f"{x:.{digits}f}"
 
 
-def report(args, command, presets, subsets, rows, sizes, load_start, load_end, elapsed_s, m3t_note, skipped) -> str:
+def report(args, command, presets, subsets, rows, sizes, load_start, load_end, elapsed_s, m3t_note, skipped, failed) -> str:
     import jax
 
     methods = [("jaxtrack", s) for s in subsets] + [("M3T", c) for c in M3T_CONFIGS if any(r[0] == "M3T" and r[1] == c for r in rows)]
@@ -175,6 +188,7 @@ def report(args, command, presets, subsets, rows, sizes, load_start, load_end, e
         f"Command: `{command}`  ",
         (f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, {jax.devices()[0].platform}, "
          f"JAX {jax.__version__}, float32; OpenCV single-threaded; M3T one thread.  "),
+        f"Source: {source_state()}  ",
         (f"Load average (1, 5, 15 min) at the start {tuple(round(x, 2) for x in load_start)}, at the end "
          f"{tuple(round(x, 2) for x in load_end)}; run took {elapsed_s / 60:.1f} min (ms / frame are host times on a "
          "shared machine when the load is above the core count; they include nothing of compilation only when the "
@@ -232,6 +246,7 @@ def report(args, command, presets, subsets, rows, sizes, load_start, load_end, e
         m3t_note,
         (f"- Not run, the time budget (--budget-min {args.budget_min:g}) was spent: "
          + ", ".join(f"{c} on {p}" for c, p in skipped) + ".") if skipped else "",
+        ("- Failed: " + "; ".join(failed)) if failed else "",
     ]
     lines += [n for n in notes if n]
     return "\n".join(lines) + "\n"
@@ -271,15 +286,19 @@ def main(argv=None):
     started, load_start = time.perf_counter(), os.getloadavg()
     seq_dir = pathlib.Path(args.seq_dir) if args.seq_dir else pathlib.Path(tempfile.mkdtemp(prefix="track_presets_"))
     work = pathlib.Path(tempfile.mkdtemp(prefix="track_presets_out_"))
-    rows, sizes, seqs, skipped = [], {}, {}, []
+    rows, sizes, seqs, skipped, failed = [], {}, {}, [], []
     resets = (True, False) if args.without_reset else (True,)
     try:
         for p in presets:  # every sequence, and M3T on each (seconds), before the long jaxtrack runs
             cfg = preset_config(p, args.scale, args.frames)
             seqs[p] = read_sequence(write_preset(p, cfg, seq_dir))
             sizes[p] = (cfg.width, cfg.height, cfg.frames, cfg.cameras)
-            if use_m3t:
-                rows += [("M3T", config, p, run_m3t(seqs[p], config, reset, work)) for config in M3T_CONFIGS for reset in resets]
+            for config in M3T_CONFIGS if use_m3t else ():
+                for reset in resets:
+                    try:
+                        rows.append(("M3T", config, p, run_m3t(seqs[p], config, reset, work)))
+                    except (RuntimeError, subprocess.TimeoutExpired) as e:
+                        failed.append(f"M3T {config} on {p} ({type(e).__name__}: {str(e).strip()[-300:]})")
         # Subset by subset, so that a spent time budget drops whole subsets rather than presets.
         for subset in subsets:
             for p in presets:
@@ -288,7 +307,12 @@ def main(argv=None):
                     continue
                 for reset in resets:
                     t = time.perf_counter()
-                    r = run_jaxtrack(seqs[p], subset, reset, work)
+                    try:
+                        r = run_jaxtrack(seqs[p], subset, reset, work)
+                    except Exception as e:  # noqa: BLE001 - a crash of one run is reported, the others go on
+                        failed.append(f"{subset} on {p} ({type(e).__name__}: {str(e).strip()[:300]})")
+                        print(f"[track_presets] failed: {failed[-1]}", file=sys.stderr, flush=True)
+                        continue
                     rows.append(("jaxtrack", subset, p, r))
                     print(f"[track_presets] {p} {subset} reset={reset}: {_pct(r['success'])}, first failure {r['first_failure']}, "
                           f"{r['compiles']} compiles ({time.perf_counter() - t:.0f} s, {(time.perf_counter() - started) / 60:.1f} min)",
@@ -296,7 +320,7 @@ def main(argv=None):
                 if len(presets) > 1:
                     jax.clear_caches()  # programs of this preset and subset (mesh, raster plan, crops) are not used again
         text = report(args, command, presets, subsets, rows, sizes, load_start, os.getloadavg(), time.perf_counter() - started,
-                      m3t_note, skipped)
+                      m3t_note, skipped, failed)
     finally:
         shutil.rmtree(work, ignore_errors=True)
         if not args.seq_dir:
