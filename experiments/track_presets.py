@@ -252,6 +252,30 @@ def report(args, command, presets, subsets, rows, sizes, load_start, load_end, e
     return "\n".join(lines) + "\n"
 
 
+def plot(path, presets, rows) -> None:
+    """Grouped bars: success rate with resets per preset, one bar per method (jaxtrack cue subsets, M3T)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    methods = sorted(dict.fromkeys((m, c) for m, c, _, r in rows if r["reset_run"]), key=lambda mc: mc[0] == "M3T")
+    width = 0.8 / max(len(methods), 1)
+    fig, ax = plt.subplots(figsize=(max(6.0, 1.6 * len(presets)), 3.6))
+    for i, (method, cues) in enumerate(methods):
+        by_preset = {p: r["success"] for m, c, p, r in rows if (m, c) == (method, cues) and r["reset_run"]}
+        xs = [k + (i - (len(methods) - 1) / 2) * width for k, p in enumerate(presets) if p in by_preset]
+        ax.bar(xs, [100 * by_preset[p] for p in presets if p in by_preset], width, label=f"{method} {cues}",
+               hatch="//" if method == "M3T" else None)
+    ax.set_xticks(range(len(presets)), presets, rotation=15, fontsize=8)
+    ax.set_ylabel("5 cm / 5° success with resets (%)")
+    ax.set_ylim(0, 105)
+    ax.legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="smoke run: occluded-box, region, 96x72, 4 frames")
@@ -265,6 +289,7 @@ def main(argv=None):
                     help="start no new jaxtrack run after this many minutes (the rest is reported as not run)")
     ap.add_argument("--seq-dir", default=None, help="folder for the rendered sequences (default: a temporary one)")
     ap.add_argument("--out", default=None, help="markdown output (default experiments/results/track_presets.md; --quick: none)")
+    ap.add_argument("--plot", default=None, help="bar chart (default experiments/results/track_presets.png; --quick: none)")
     args = ap.parse_args(argv)
     if args.quick:  # the same sequence and configuration as bench_track.py --quick (one compiled program)
         args.presets, args.cues, args.frames, args.scale = "occluded-box", "region", 4, 0.15
@@ -330,6 +355,9 @@ def main(argv=None):
     if out is not None:
         pathlib.Path(out).parent.mkdir(parents=True, exist_ok=True)
         pathlib.Path(out).write_text(text)
+    figure = args.plot if args.plot is not None else (None if args.quick else str(RESULTS / "track_presets.png"))
+    if figure is not None and rows:
+        plot(figure, presets, rows)
     return rows
 
 
