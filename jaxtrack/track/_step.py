@@ -69,7 +69,7 @@ class TrackerConfig(eqx.Module):
     Attributes:
         cues: the cues used, a subset of ("region", "flow", "sift").
         occlusion: run the model-based occlusion detection (r(x) for flow, the SIFT mask).
-        region: the region cue's settings (level-set iterations, rounds, contour capacity, ...).
+        region: the region cue's settings (level-set iterations, rounds (10 here), contour capacity, ...).
         flow: the flow minimiser's settings (a fast coarse-to-fine schedule on the crop).
         flow_stride: grid step of the flow correspondences (capacity (h/s)·(w/s) per camera).
         prediction_steps: Gauss-Newton steps of the prediction solve.
@@ -80,7 +80,9 @@ class TrackerConfig(eqx.Module):
 
     cues: tuple = eqx.field(static=True, default=CUES)
     occlusion: bool = eqx.field(static=True, default=True)
-    region: RegionConfig = eqx.field(static=True, default_factory=RegionConfig)
+    # The prediction starts the refinement near the answer: 10 rounds gave the tea box the same errors as
+    # 30 (1.43° / 2.54 mm both, measured) and bound the frame's worst-case time.
+    region: RegionConfig = eqx.field(static=True, default_factory=lambda: RegionConfig(outer_iterations=10))
     flow: FlowConfig = eqx.field(static=True, default_factory=lambda: FlowConfig(eta=0.5, min_size=16, warps=4, lagged=1, sor_iters=10))
     flow_stride: int = eqx.field(static=True, default=4)
     prediction_steps: int = eqx.field(static=True, default=10)

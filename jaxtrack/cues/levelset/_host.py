@@ -45,7 +45,7 @@ def projected_boxes(mesh: Mesh, cameras: Camera, T_world_root, theta=None, model
 
 
 def region_crop(boxes, image_shape: tuple[int, int], margin: int = 24, factor: int = 4, sizes=ROI_SIZES,
-                keep: tuple[int, int] | None = None, shrink: float = 0.5):
+                keep: tuple[int, int] | None = None, shrink: float = 0.5, grow: float = 1.0):
     """One static crop size for all cameras and each camera's offset.
 
     Each box grows by `margin` on every side; the largest need over the cameras is rounded up to the
@@ -54,7 +54,8 @@ def region_crop(boxes, image_shape: tuple[int, int], margin: int = 24, factor: i
 
     `keep`: the crop size used last. It is kept while the need fits in it and is more than `shrink`
     of it on both axes, so an object whose size hovers near a class boundary does not switch
-    between two compiled programs (each size class is one compilation of the caller's step).
+    between two compiled programs (each size class is one compilation of the caller's step). A new
+    size is chosen for `grow` times the need, headroom for an object that keeps approaching.
 
     Returns:
         (offsets (C, 2) int32 (y0, x0), crop_shape (h, w)).
@@ -75,7 +76,7 @@ def region_crop(boxes, image_shape: tuple[int, int], margin: int = 24, factor: i
 
     need_w = np.max(boxes[:, 2] - boxes[:, 0] + 1 + 2 * margin)
     need_h = np.max(boxes[:, 3] - boxes[:, 1] + 1 + 2 * margin)
-    cw, ch = side(need_w, W), side(need_h, H)
+    cw, ch = side(grow * need_w, W), side(grow * need_h, H)
     if keep is not None:
         kh, kw = keep
         if min(need_h, H) <= kh <= H and min(need_w, W) <= kw <= W and need_h > shrink * kh and need_w > shrink * kw:
