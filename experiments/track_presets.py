@@ -248,7 +248,7 @@ def report(args, command, presets, subsets, rows, sizes, load_start, load_end, e
          + ", ".join(f"{c} on {p}" for c, p in skipped) + ".") if skipped else "",
         ("- Failed: " + "; ".join(failed)) if failed else "",
     ]
-    lines += [n for n in notes if n]
+    lines += ["", *[n for n in notes if n]]
     return "\n".join(lines) + "\n"
 
 
