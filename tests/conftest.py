@@ -20,3 +20,9 @@ def shared_data() -> pathlib.Path:
             pytest.fail(f"JAXTRACK_REQUIRE_SHARED=1 but {SHARED_DATA} is missing")
         pytest.skip(f"{SHARED_DATA} not found")
     return SHARED_DATA
+
+
+def pytest_collection_modifyitems(config, items):
+    """Tests marked `heavy` (long, no shared module fixture) run first: under `-n 2` each worker then starts
+    with one of them instead of one worker finishing a four-minute test alone at the end."""
+    items.sort(key=lambda item: item.get_closest_marker("heavy") is None)

@@ -26,6 +26,7 @@ def test_bench_pose_quick(tmp_path):
     assert throughput[0][4] == 1.0  # every batched solve converged
 
 
+@pytest.mark.heavy
 def test_bench_flow_quick(tmp_path, shared_data):
     out = tmp_path / "flow.md"
     _load("bench_flow").main(["--quick", "--out", str(out), "--viz", str(tmp_path / "flow.png")])

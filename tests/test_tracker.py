@@ -110,6 +110,7 @@ def test_bad_input_names_the_problem(sequence, tracker):
         TrackerConfig(cues=("region", "colour"))
 
 
+@pytest.mark.heavy
 def test_vmap_over_cue_weights_equals_separate_runs(sequence):
     """One compiled step maps over 8 weight settings; each equals its own run (the motion cues, whose
     prediction weights the factors scale; the region path shares the same `TrackerParams` leaves)."""
@@ -162,6 +163,7 @@ def _shaded_frames(mesh, model, cameras, T, theta, background):
     return np.stack(frames).astype(np.float32)
 
 
+@pytest.mark.heavy
 def test_tracks_a_two_joint_chain_with_two_cameras():
     """Several cameras share one state χ = (ξ, Θ), and a chain is tracked like a rigid object: a 3-part,
     2-joint arm seen by two cameras, region + flow cues (a flat-shaded object has no SIFT texture).
@@ -207,6 +209,7 @@ def test_tracks_a_two_joint_chain_with_two_cameras():
     assert rot < 2.0 and trans < 5.0 and np.all(joints < np.radians(3.5)), (rot, trans, np.degrees(joints))
 
 
+@pytest.mark.heavy
 def test_tracks_the_teabox_through_all_frames(shared_data):
     """Real video (ViSP tea box, 49 frames of 640x480) with the default configuration, all cues.
 

@@ -277,8 +277,10 @@ class Tracker:
         timings: dict = {}
         start = time.perf_counter()
         before = projected_boxes(self.mesh, self.cameras, state.T_world_root, state.theta, self.model)
-        offsets, crop_shape = self.crop(state.T_world_root, state.theta, before)
-        if offsets is None:  # the object went behind a camera: keep the pose, report it out of view
+        H, W = self.cameras.height, self.cameras.width
+        on_screen = np.isfinite(before).all(1) & (before[:, 2] >= 0) & (before[:, 0] < W) & (before[:, 3] >= 0) & (before[:, 1] < H)
+        offsets, crop_shape = self.crop(state.T_world_root, state.theta, before) if on_screen.any() else (None, None)
+        if offsets is None:  # behind a camera or outside every image: keep the pose, report it out of view
             lost = eqx.tree_at(lambda s: s.images, state, jnp.asarray(frames, self.dtype))
             timings["total_s"] = time.perf_counter() - start
             return lost, self._out_of_view(state), {"timings": timings, "offsets": None, "crop_shape": None}
