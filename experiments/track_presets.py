@@ -38,6 +38,9 @@ import time
 
 import numpy as np
 
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+from bench_track import source_state  # one definition for both reports
+
 RESULTS = pathlib.Path(__file__).resolve().parent / "results"
 SHARED = pathlib.Path(os.environ.get("JAXTRACK_SHARED", pathlib.Path(__file__).resolve().parents[2] / "shared"))
 M3T_RUN = SHARED / "baselines" / "m3t" / "run.sh"
@@ -155,19 +158,6 @@ def run_m3t(seq, config: str, reset: bool, out_dir: pathlib.Path) -> dict:
     out = scores(evaluate_tracking(csv, seq, camera=0), reset, times[1:])
     out["cameras"], out["compiles"] = 1, None
     return out
-
-
-def source_state() -> str:
-    """The commit measured, and whether the library had uncommitted changes (work in progress)."""
-    root = pathlib.Path(__file__).resolve().parents[1]
-    try:
-        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--", "jaxtrack"], cwd=root, capture_output=True, text=True,
-                               check=True).stdout.split("\n")
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown (not a git checkout)"
-    changed = sorted(line[3:] for line in dirty if line.strip())
-    return f"commit {head}" + (f" with uncommitted changes in {', '.join(changed)}" if changed else "")
 
 
 def _pct(x) -> str:
