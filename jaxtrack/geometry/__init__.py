@@ -12,6 +12,7 @@ from ._camera import undistort_points as undistort_points
 from ._chain import KinematicModel as KinematicModel
 from ._chain import chain_model as chain_model
 from ._chain import part_transforms as part_transforms
+from ._chain import prismatic_twist as prismatic_twist
 from ._chain import revolute_twist as revolute_twist
 from ._chain import rigid_model as rigid_model
 from ._lie import make_transform as make_transform

@@ -5,8 +5,9 @@ A point X on part p (given in the model frame at the zero configuration) moves t
     T(χ) X = exp(ξ̂) · Π_{j ∈ J(p)} exp(θ_j ξ̂_j) · X,                          (eq. 2)
 
 with χ = (ξ, Θ) and J(p) the joints on the path from the root to part p, ordered root first. Joint j is
-a revolute joint: unit axis ω_j through a point q_j, twist ξ_j = (−ω_j × q_j, ω_j) (zero pitch). A rigid
-object is a chain with one part and no joints.
+a revolute joint: unit axis ω_j through a point q_j, twist ξ_j = (−ω_j × q_j, ω_j) (zero pitch), θ_j in
+radians; or a prismatic joint (URDF models): ξ_j = (v_j, 0) with v_j the unit sliding direction, θ_j in mm.
+A rigid object is a chain with one part and no joints.
 
 The tree is stored with static shapes as a mask `part_joints[p, j] = j ∈ J(p)`; joints are ordered so
 that a joint's parent joints come first (topological order), which makes the product an ordered scan.
@@ -78,19 +79,31 @@ def revolute_twist(axis: npt.ArrayLike, point: npt.ArrayLike):
     return np.concatenate([-np.cross(omega, q), omega])
 
 
+def prismatic_twist(axis: npt.ArrayLike):
+    """Pure translation twist ξ = (v, 0) of a prismatic joint sliding along v (normalised)."""
+    axis = np.asarray(axis, np.float64)
+    norm = np.linalg.norm(axis)
+    if axis.shape != (3,) or not np.isfinite(norm) or norm < 1e-12:
+        raise ValueError(f"prismatic joint axis must be a finite non-zero 3-vector, got {axis!r}")
+    return np.concatenate([axis / norm, np.zeros(3)])
+
+
 def chain_model(
     parents: Sequence[int],
     axes: Sequence[Sequence[float]],
     points: Sequence[Sequence[float]],
     dtype: DTypeLike = jnp.float32,
+    joint_types: Sequence[str] | None = None,
 ) -> KinematicModel:
-    """Build a kinematic tree with one revolute joint per non-root part.
+    """Build a kinematic tree with one joint (revolute unless `joint_types` says otherwise) per non-root part.
 
     Args:
         parents: (P,) parent part of each part; `parents[0] = -1` is the root; every other part p is
             attached to `parents[p] < p` by joint p − 1 (so parts, and joints, are in topological order).
-        axes: (P − 1, 3) joint axes ω_j in the model frame (normalised here).
-        points: (P − 1, 3) a point q_j on each joint axis, model frame.
+        axes: (P − 1, 3) joint axes ω_j (sliding directions for prismatic joints) in the model frame
+            (normalised here).
+        points: (P − 1, 3) a point q_j on each joint axis, model frame (unused by prismatic joints).
+        joint_types: (P − 1,) "revolute" or "prismatic" per joint; None means all revolute.
 
     Returns:
         KinematicModel with J = P − 1 joints.
@@ -107,7 +120,17 @@ def chain_model(
         raise ValueError(
             f"a tree of {num_parts} parts has {num_joints} joints; got {len(axes)} axes and {len(points)} points"
         )
-    twists = np.stack([revolute_twist(a, q) for a, q in zip(axes, points)]) if num_joints else np.zeros((0, 6))
+    joint_types = ["revolute"] * num_joints if joint_types is None else [str(t) for t in joint_types]
+    if len(joint_types) != num_joints:
+        raise ValueError(f"joint_types must have {num_joints} entries, got {len(joint_types)}")
+    for j, kind in enumerate(joint_types):
+        if kind not in ("revolute", "prismatic"):
+            raise ValueError(f"joint_types[{j}] = {kind!r}: must be 'revolute' or 'prismatic'")
+    twists = [
+        prismatic_twist(a) if kind == "prismatic" else revolute_twist(a, q)
+        for a, q, kind in zip(axes, points, joint_types)
+    ]
+    twists = np.stack(twists) if num_joints else np.zeros((0, 6))
     mask = np.zeros((num_parts, num_joints), bool)
     for p in range(1, num_parts):
         mask[p] = mask[parents[p]]
@@ -126,7 +149,7 @@ def part_transforms(model: KinematicModel, T_world_root: jax.Array, theta: jax.A
     Args:
         model: the kinematic tree (P parts, J joints).
         T_world_root: (4, 4) the root pose exp(ξ̂) (maps model coordinates to world).
-        theta: (J,) joint angles Θ in radians.
+        theta: (J,) joint values Θ: radians (revolute), mm (prismatic).
 
     Returns:
         (P, 4, 4) T_world_part[p] = T_world_root · Π_{j ∈ J(p)} exp(θ_j ξ̂_j), to apply to model-frame
