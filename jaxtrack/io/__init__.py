@@ -1,4 +1,5 @@
-"""I/O: the BOP scene layout, the BOP results CSV, meshes, images, Middlebury .flo flow files.
+"""I/O: the BOP scene layout, the BOP results CSV, meshes, images, Middlebury .flo flow files, URDF models,
+mocap skeletons and motions (ASF/AMC, BVH) and human body models built from them.
 
 Names load on first use (PEP 562): OpenCV and trimesh are imported only when a reader or writer that
 needs them is touched, so `import jaxtrack` and the .flo functions stay light.
@@ -33,6 +34,14 @@ _EXPORTS = {
     "write_image": "_images",
     "load_mesh": "_meshes",
     "load_trimesh": "_meshes",
+    "ArticulatedModel": "_urdf",
+    "RobotDescription": "_urdf",
+    "RobotJoint": "_urdf",
+    "RobotLink": "_urdf",
+    "articulated_model": "_urdf",
+    "read_robot_description": "_urdf",
+    "read_urdf": "_urdf",
+    "write_urdf": "_urdf",
 }
 
 
@@ -61,3 +70,11 @@ if TYPE_CHECKING:  # static analysers and IDEs see the real definitions
     from ._images import write_image as write_image
     from ._meshes import load_mesh as load_mesh
     from ._meshes import load_trimesh as load_trimesh
+    from ._urdf import ArticulatedModel as ArticulatedModel
+    from ._urdf import RobotDescription as RobotDescription
+    from ._urdf import RobotJoint as RobotJoint
+    from ._urdf import RobotLink as RobotLink
+    from ._urdf import articulated_model as articulated_model
+    from ._urdf import read_robot_description as read_robot_description
+    from ._urdf import read_urdf as read_urdf
+    from ._urdf import write_urdf as write_urdf
