@@ -42,6 +42,19 @@ _EXPORTS = {
     "read_robot_description": "_urdf",
     "read_urdf": "_urdf",
     "write_urdf": "_urdf",
+    "Motion": "_mocap",
+    "Skeleton": "_mocap",
+    "bone_transforms": "_mocap",
+    "joint_positions": "_mocap",
+    "read_amc": "_mocap",
+    "read_asf": "_mocap",
+    "read_bvh": "_mocap",
+    "write_bvh": "_mocap",
+    "PAPER_DOFS": "_human",
+    "human_description": "_human",
+    "human_joint_values": "_human",
+    "locked_motion": "_human",
+    "tapered_capsule": "_human",
 }
 
 
@@ -62,6 +75,11 @@ if TYPE_CHECKING:  # static analysers and IDEs see the real definitions
     from ._flo import known_flow_mask as known_flow_mask
     from ._flo import read_flo as read_flo
     from ._flo import write_flo as write_flo
+    from ._human import PAPER_DOFS as PAPER_DOFS
+    from ._human import human_description as human_description
+    from ._human import human_joint_values as human_joint_values
+    from ._human import locked_motion as locked_motion
+    from ._human import tapered_capsule as tapered_capsule
     from ._images import image_size as image_size
     from ._images import prepare_image_output as prepare_image_output
     from ._images import prepare_output_file as prepare_output_file
@@ -70,6 +88,14 @@ if TYPE_CHECKING:  # static analysers and IDEs see the real definitions
     from ._images import write_image as write_image
     from ._meshes import load_mesh as load_mesh
     from ._meshes import load_trimesh as load_trimesh
+    from ._mocap import Motion as Motion
+    from ._mocap import Skeleton as Skeleton
+    from ._mocap import bone_transforms as bone_transforms
+    from ._mocap import joint_positions as joint_positions
+    from ._mocap import read_amc as read_amc
+    from ._mocap import read_asf as read_asf
+    from ._mocap import read_bvh as read_bvh
+    from ._mocap import write_bvh as write_bvh
     from ._urdf import ArticulatedModel as ArticulatedModel
     from ._urdf import RobotDescription as RobotDescription
     from ._urdf import RobotJoint as RobotJoint
