@@ -578,17 +578,19 @@ def read_bvh(path: str | os.PathLike, length_unit_mm: float = 1.0) -> tuple[Skel
     )
 
     lines = [line.strip() for line in motion_text.splitlines() if line.strip()]
+    num_dofs = len(skeleton.dof_names)
     try:
         num_frames = int(lines[0].split(":")[1])
         frame_time = float(lines[1].split(":")[1])
-        values = np.array([[float(v) for v in line.split()] for line in lines[2 : 2 + num_frames]])
+        rows = [[float(v) for v in line.split()] for line in lines[2 : 2 + num_frames]]
     except (IndexError, ValueError) as e:
         raise ValueError(f"{path}: malformed MOTION header or frame ({e})") from e
-    num_dofs = len(skeleton.dof_names)
-    if values.shape != (num_frames, num_dofs):
-        raise ValueError(
-            f"{path}: MOTION has {values.shape} values, expected {num_frames} frames x {num_dofs} channels"
-        )
+    if len(rows) != num_frames:
+        raise ValueError(f"{path}: MOTION says {num_frames} frames but has {len(rows)}")
+    for f, row in enumerate(rows):
+        if len(row) != num_dofs:
+            raise ValueError(f"{path}: MOTION frame {f} has {len(row)} values, the hierarchy has {num_dofs} channels")
+    values = np.array(rows, np.float64).reshape(num_frames, num_dofs)
     if not frame_time > 0:
         raise ValueError(f"{path}: Frame Time must be > 0, got {frame_time}")
     scale = np.array([length_unit_mm if d in _TRANSLATIONS else np.pi / 180.0 for bone in dofs for d in bone])

@@ -40,6 +40,7 @@ from ..render import Mesh, make_mesh
 MOVABLE_TYPES = ("revolute", "continuous", "prismatic")
 JOINT_TYPES = (*MOVABLE_TYPES, "fixed")
 MM_PER_M = 1000.0
+_part_transforms_jit = None
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -175,16 +176,22 @@ class ArticulatedModel:
 
     def link_poses(self, theta: npt.ArrayLike, T_world_root: npt.ArrayLike | None = None) -> dict[str, np.ndarray]:
         """Host-side forward kinematics: `{link: (4, 4) T_world_link}` (mm) at Θ (model units), eq. (2)."""
+        import jax
         import jax.numpy as jnp
 
         from ..geometry import part_transforms
 
+        global _part_transforms_jit
+        if _part_transforms_jit is None:  # one compilation per model shape instead of op-by-op dispatch
+            _part_transforms_jit = jax.jit(part_transforms)
         T_world_root = np.eye(4) if T_world_root is None else np.asarray(T_world_root, np.float64)
         theta = np.asarray(theta, np.float64)
         if theta.shape != (self.num_joints,):
             raise ValueError(f"theta must have shape ({self.num_joints},), got {theta.shape}")
         dtype = self.model.joint_twists.dtype
-        parts = np.asarray(part_transforms(self.model, jnp.asarray(T_world_root, dtype), jnp.asarray(theta, dtype)))
+        parts = np.asarray(
+            _part_transforms_jit(self.model, jnp.asarray(T_world_root, dtype), jnp.asarray(theta, dtype))
+        )
         return {link: parts[p] @ self.T_root_link0[link] for link, p in self.link_part.items()}
 
 
