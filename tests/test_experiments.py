@@ -59,6 +59,7 @@ def track_smoke(tmp_path_factory):
             "presets": (preset_rows, (out / "presets.md").read_text()), "m3t": bench.m3t_available()}
 
 
+@pytest.mark.xdist_group("tracker_quick")
 def test_bench_track_quick(track_smoke):
     rows, _, text = track_smoke["bench"]
     cold, warm = rows[("region", 1)]
@@ -77,6 +78,7 @@ def test_bench_track_quick(track_smoke):
     assert "region only:" in text and "frames/s (goal ≥ 30)" in text
 
 
+@pytest.mark.xdist_group("tracker_quick")
 def test_bench_track_quick_m3t(track_smoke):
     smoke = track_smoke
     if not smoke["m3t"]:
@@ -86,6 +88,7 @@ def test_bench_track_quick_m3t(track_smoke):
     assert _markdown_rows(text, "regtex")
 
 
+@pytest.mark.xdist_group("tracker_quick")
 def test_track_presets_quick(track_smoke):
     rows, text = track_smoke["presets"]
     ours = [r for r in rows if r[0] == "jaxtrack"]
@@ -101,6 +104,7 @@ def test_track_presets_quick(track_smoke):
     assert detail and detail[0][1] == "jaxtrack" and detail[0][4] == "3"
 
 
+@pytest.mark.xdist_group("tracker_quick")
 def test_track_presets_quick_m3t(track_smoke):
     smoke = track_smoke
     if not smoke["m3t"]:
