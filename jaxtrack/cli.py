@@ -79,6 +79,10 @@ def _cmd_synth(args) -> int:
         return 0
     if args.out is None:
         raise ValueError("an output folder is required (or --list)")
+    if args.urdf or args.mocap:
+        return _synth_articulated(args)
+    if args.step_deg is not None or args.fps is not None:
+        raise ValueError("--step-deg and --fps apply to articulated sequences (--urdf or --mocap)")
     if args.preset and args.preset not in PRESETS:
         raise ValueError(f"unknown preset {args.preset!r}; `jaxtrack synth --list` shows them")
     cfg = PRESETS[args.preset] if args.preset else SynthConfig()
@@ -90,6 +94,60 @@ def _cmd_synth(args) -> int:
     with tqdm(total=cfg.frames * cfg.cameras, desc="rendering", disable=args.quiet) as bar:
         root = write_sequence(cfg, args.out, progress=bar)
     print(f"wrote {cfg.frames} frames x {cfg.cameras} camera(s) to {root}")
+    return 0
+
+
+def _synth_articulated(args) -> int:
+    """`jaxtrack synth --urdf ROBOT.urdf` / `--mocap SUBJECT.asf MOTION.amc`: an articulated sequence."""
+    import pathlib
+
+    import numpy as np
+    from tqdm import tqdm
+
+    from jaxtrack.io import prepare_output_folder, read_urdf
+    from jaxtrack.synth import (
+        ArticulatedSynthConfig,
+        mocap_motion,
+        random_joint_trajectory,
+        upright_urdf_pose,
+        write_articulated_sequence,
+    )
+
+    if args.urdf and args.mocap:
+        raise ValueError("give --urdf or --mocap, not both")
+    rigid_only = [f"--{k.replace('_', '-')}" for k in ("preset", "object", "motion", "pose_file", "salt_fraction", "occluders")
+                  if getattr(args, k) is not None]
+    if rigid_only:
+        raise ValueError(f"{', '.join(rigid_only)}: rigid-object options; not used with --urdf / --mocap")
+    fps = 120 if args.fps is None else args.fps
+    if args.mocap and 120 % fps:
+        raise ValueError(f"argument --fps: {fps} does not divide the mocap's 120 frames/s (use 120, 60, 40, 30, 24, ...)")
+    overrides = {k: getattr(args, k) for k in ("appearance", "background", "noise_sigma", "cameras", "seed")
+                 if getattr(args, k) is not None}
+    if args.mocap:
+        for f in args.mocap:
+            if not pathlib.Path(f).is_file():
+                raise ValueError(f"argument --mocap: {f}: file not found")
+        frames = 120 if args.frames is None else args.frames
+        model, T_world_root, theta = mocap_motion(args.mocap[0], args.mocap[1], frames=frames)
+        cfg = ArticulatedSynthConfig(**{"cameras": 4, "distance": 4500.0, "appearance": "photo", **overrides,
+                                        "subsample": 120 // fps})
+        info = {"mocap": [str(pathlib.Path(f).resolve()) for f in args.mocap], "fps": fps}
+    else:
+        if not pathlib.Path(args.urdf).is_file():
+            raise ValueError(f"argument --urdf: {args.urdf}: file not found")
+        model = read_urdf(args.urdf, package_dirs=args.package_dir or (), geometry=args.geometry)
+        frames = 30 if args.frames is None else args.frames
+        theta = random_joint_trajectory(model, frames, step_deg=3.0 if args.step_deg is None else args.step_deg,
+                                        seed=0 if args.seed is None else args.seed)
+        T_world_root = np.repeat(upright_urdf_pose((0.0, -400.0, 0.0))[None], frames, 0)
+        cfg = ArticulatedSynthConfig(**{"distance": 1800.0, **overrides})
+        info = {"urdf": str(pathlib.Path(args.urdf).resolve()), "step_deg": args.step_deg}
+    prepare_output_folder(args.out, "output folder")
+    n = len(range(0, len(theta), cfg.subsample))
+    with tqdm(total=n * cfg.cameras, desc="rendering", disable=args.quiet) as bar:
+        root = write_articulated_sequence(model, T_world_root, theta, cfg, args.out, progress=bar, info=info)
+    print(f"wrote {n} frames x {cfg.cameras} camera(s) of {model.name} ({model.num_joints} joints) to {root}")
     return 0
 
 
@@ -587,7 +645,8 @@ def build_parser() -> argparse.ArgumentParser:
     synth.add_argument("--preset", help="a named scenario (see --list)")
     synth.add_argument("--list", action="store_true", help="list the presets and exit")
     synth.add_argument("--object", help="box | teapot | cracker_box | milk_truck | a mesh file")
-    synth.add_argument("--appearance", choices=("texture", "photo", "flat"))
+    synth.add_argument("--appearance", choices=("texture", "photo", "flat", "parts", "suit"),
+                       help="rigid: texture | photo | flat; articulated: parts (a colour per part) | photo | suit")
     synth.add_argument("--background", help="a scikit-image photo (coffee, astronaut, brick, ...) or flat")
     synth.add_argument("--motion", choices=("turntable", "random", "camera", "file"))
     synth.add_argument("--pose-file", dest="pose_file", help=".npy of (N, 4, 4) object poses for --motion file")
@@ -598,6 +657,14 @@ def build_parser() -> argparse.ArgumentParser:
     synth.add_argument("--cameras", type=_number(int, 1, 4), help="cameras on a ring (1-4)")
     synth.add_argument("--subsample", type=_number(int, 1), help="keep every k-th frame of a k-times finer motion")
     synth.add_argument("--seed", type=_number(int, 0))
+    synth.add_argument("--urdf", help="articulated: a URDF robot moving along smooth random joint trajectories")
+    synth.add_argument("--package-dir", dest="package_dir", action="append",
+                       help="folder that package:// mesh paths of --urdf resolve against (repeatable)")
+    synth.add_argument("--geometry", choices=("visual", "collision"), default="visual", help="--urdf meshes to use")
+    synth.add_argument("--step-deg", dest="step_deg", type=_number(float, 0), help="--urdf: largest joint change per frame")
+    synth.add_argument("--mocap", nargs=2, metavar=("ASF", "AMC"),
+                       help="articulated: the 26-DoF body model of a CMU skeleton driven by its motion (4 cameras)")
+    synth.add_argument("--fps", type=_number(int, 1), help="--mocap: frame rate to keep of the 120 frames/s motion")
     synth.add_argument("--quiet", action="store_true", help="no progress bar")
     synth.set_defaults(func=_cmd_synth)
 

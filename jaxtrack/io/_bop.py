@@ -5,6 +5,10 @@
     SEQ/000000/scene_camera.json        {"0": {"cam_K": [9], "cam_R_w2c": [9], "cam_t_w2c": [3]}, ...}
     SEQ/000000/scene_gt.json            {"0": [{"obj_id": 1, "cam_R_m2c": [9], "cam_t_m2c": [3]}], ...}
 
+Articulated objects: `models/obj_000001.urdf` (URDF, metres; read by `jaxtrack.io.read_urdf`), and each
+scene_gt.json entry of it gives the root link's pose plus `"joints": {"<joint name>": value, ...}` for
+its movable joints (radians; metres for prismatic joints, as URDF).
+
 Frames are named by BOP image id and paired with the JSON entries by id, never by position: ids may
 have gaps, an entry whose image is missing is an error naming the file, an image without ground truth
 has unknown (NaN) poses. The first image's scene_gt.json entry is the initial pose; later entries, when
@@ -26,7 +30,7 @@ import numpy.typing as npt
 from ..geometry import checked_array, checked_intrinsics, checked_rotation
 from ._images import image_size, prepare_output_file, prepare_output_folder, read_image, write_image
 
-MODEL_SUFFIXES = (".ply", ".obj", ".stl", ".glb", ".gltf", ".off")
+MODEL_SUFFIXES = (".ply", ".obj", ".stl", ".glb", ".gltf", ".off", ".urdf")
 FRAME_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif")
 # Two cam_K of one camera are "the same" within this relative difference (JSON round trips of float32).
 K_RTOL = 1e-6
@@ -49,8 +53,11 @@ class CameraView:
         frame_ids: (num_frames,) BOP image id of every frame.
         K: (3, 3) intrinsics (BOP stores them per frame; checked equal over the sequence).
         T_cam_world: (4, 4) extrinsics of the first frame (identity when absent).
-        T_cam_obj: dict obj_id -> (num_frames, 4, 4) ground-truth poses, NaN where unknown.
+        T_cam_obj: dict obj_id -> (num_frames, 4, 4) ground-truth poses, NaN where unknown (the root
+            link's pose for an articulated object).
         width, height: image size (checked equal for every frame).
+        joints: dict obj_id -> {joint name: (num_frames,) values in URDF units, NaN where unknown}, for
+            the objects whose scene_gt.json entries carry "joints".
     """
 
     folder: pathlib.Path
@@ -61,6 +68,7 @@ class CameraView:
     width: int
     height: int
     frame_ids: list = dataclasses.field(default_factory=list)
+    joints: dict = dataclasses.field(default_factory=dict)
 
     def read_frame(self, index: int, gray: bool = False) -> np.ndarray:
         """Frame `index` (position, not id) as float32 H×W×3 RGB (or H×W gray) in [0, 255].
@@ -216,6 +224,7 @@ def read_camera_view(folder: str | os.PathLike) -> CameraView:
     _missing_images(gt_path, gt, images, image_dir, f"{len(gt)} frames of ground truth for {len(images)} images")
     index = {frame: i for i, frame in enumerate(ids)}
     poses: dict = {}
+    joints: dict = {}
     for frame, objects in gt.items():
         if not isinstance(objects, list):
             raise SequenceError(f"{gt_path}: frame {frame} must hold a list of objects, got {type(objects).__name__}")
@@ -234,6 +243,8 @@ def read_camera_view(folder: str | os.PathLike) -> CameraView:
                 raise SequenceError(f"{gt_path}: frame {frame} has two instances of obj_id {obj_id}; "
                                     f"jaxtrack tracks one instance per object")
             arr[index[frame]] = _transform(R_m2c, t_m2c)
+            if "joints" in obj:
+                _read_joints(obj["joints"], joints.setdefault(obj_id, {}), index[frame], len(ids), gt_path, frame, what)
 
     # Every frame must have the first frame's size: a stray frame would break the renderer's static
     # shapes (or, resized, every pose). Only headers are read.
@@ -246,7 +257,18 @@ def read_camera_view(folder: str | os.PathLike) -> CameraView:
                                     f"({images[first].name}) is {width}x{height}; all frames of a camera must have one size")
     except (FileNotFoundError, ValueError) as e:
         raise SequenceError(str(e)) from e
-    return CameraView(folder, list(images.values()), K, _transform(R, t), poses, width, height, ids)
+    return CameraView(folder, list(images.values()), K, _transform(R, t), poses, width, height, ids, joints)
+
+
+def _read_joints(values, into: dict, i: int, n: int, gt_path, frame, what) -> None:
+    """One scene_gt.json "joints" object into `into` ({name: (n,) NaN-filled}) at frame position i."""
+    if not isinstance(values, dict):
+        raise SequenceError(f"{gt_path}: frame {frame}{what} field 'joints' must be an object "
+                            f"{{joint name: value}}, got {type(values).__name__}")
+    for name, value in values.items():
+        if isinstance(value, bool) or not isinstance(value, int | float) or not np.isfinite(value):
+            raise SequenceError(f"{gt_path}: frame {frame}{what} joint {name!r} must be a finite number, got {value!r}")
+        into.setdefault(name, np.full(n, np.nan))[i] = float(value)
 
 
 def read_sequence(root: str | os.PathLike) -> Sequence:
@@ -294,6 +316,7 @@ def write_camera_view(
     T_cam_obj: dict,
     T_cam_world: npt.ArrayLike | None = None,
     gray: bool = False,
+    joints: dict | None = None,
 ) -> pathlib.Path:
     """Write one camera of a sequence in the BOP layout (frames 000000.png, ... and the two JSON files).
 
@@ -304,6 +327,8 @@ def write_camera_view(
         T_cam_obj: obj_id -> (N, 4, 4) poses in mm; frames with non-finite poses get no ground truth.
         T_cam_world: (4, 4) extrinsics (identity when None).
         gray: write to gray/ instead of rgb/.
+        joints: obj_id -> {joint name: (N,) values in URDF units (radians, metres)} for articulated
+            objects, written as each frame's "joints" object.
 
     Raises:
         ValueError: naming the argument or path that is wrong.
@@ -318,6 +343,13 @@ def write_camera_view(
     for obj_id, poses in T_cam_obj.items():
         if np.shape(poses) != (n, 4, 4):
             raise ValueError(f"write_camera_view: T_cam_obj[{obj_id!r}] must be ({n}, 4, 4) for {n} images, got {np.shape(poses)}")
+    joints = {} if joints is None else joints
+    for obj_id, values in joints.items():
+        if obj_id not in T_cam_obj:
+            raise ValueError(f"write_camera_view: joints[{obj_id!r}] names an object without poses in T_cam_obj")
+        for name, v in values.items():
+            if np.shape(v) != (n,) or not np.all(np.isfinite(np.asarray(v, float))):
+                raise ValueError(f"write_camera_view: joints[{obj_id!r}][{name!r}] must be {n} finite values, got shape {np.shape(v)}")
     T_cam_world = np.eye(4) if T_cam_world is None else checked_array(T_cam_world, "write_camera_view: T_cam_world")
     if T_cam_world.shape != (4, 4):
         raise ValueError(f"write_camera_view: T_cam_world must be (4, 4), got {T_cam_world.shape}")
@@ -338,6 +370,8 @@ def write_camera_view(
             T = np.asarray(poses[i], np.float64)
             if np.all(np.isfinite(T)):
                 objs.append({"obj_id": int(obj_id), "cam_R_m2c": T[:3, :3].ravel().tolist(), "cam_t_m2c": T[:3, 3].tolist()})
+                if obj_id in joints:
+                    objs[-1]["joints"] = {name: float(v[i]) for name, v in joints[obj_id].items()}
         gts[str(i)] = objs
     (folder / "scene_camera.json").write_text(json.dumps(cams, indent=1))
     (folder / "scene_gt.json").write_text(json.dumps(gts, indent=1))

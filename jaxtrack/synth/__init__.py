@@ -21,6 +21,12 @@ from ._pose_scenes import random_rotation as random_rotation
 
 # public name -> private module defining it (loaded on first access)
 _LAZY = {
+    "ArticulatedSynthConfig": "_articulated",
+    "mocap_motion": "_articulated",
+    "random_joint_trajectory": "_articulated",
+    "render_articulated_sequence": "_articulated",
+    "upright_urdf_pose": "_articulated",
+    "write_articulated_sequence": "_articulated",
     "RayCaster": "_raycast",
     "PRESETS": "_sequences",
     "SynthConfig": "_sequences",
@@ -33,6 +39,12 @@ __getattr__, __dir__ = lazy_exports(__name__, globals(), _LAZY)
 
 
 if TYPE_CHECKING:  # static analysers and IDEs see the real definitions
+    from ._articulated import ArticulatedSynthConfig as ArticulatedSynthConfig
+    from ._articulated import mocap_motion as mocap_motion
+    from ._articulated import random_joint_trajectory as random_joint_trajectory
+    from ._articulated import render_articulated_sequence as render_articulated_sequence
+    from ._articulated import upright_urdf_pose as upright_urdf_pose
+    from ._articulated import write_articulated_sequence as write_articulated_sequence
     from ._raycast import RayCaster as RayCaster
     from ._sequences import PRESETS as PRESETS
     from ._sequences import SynthConfig as SynthConfig

@@ -15,7 +15,9 @@ from ._sequence import FrameRecord as FrameRecord
 from ._sequence import TrackingEvaluation as TrackingEvaluation
 from ._sequence import TrackingRun as TrackingRun
 from ._sequence import evaluate_tracking as evaluate_tracking
+from ._sequence import read_joint_results as read_joint_results
 from ._sequence import track_sequence as track_sequence
+from ._sequence import write_joint_results as write_joint_results
 from ._sequence import write_tracking_results as write_tracking_results
 from ._step import FrameResult as FrameResult
 from ._step import TrackerConfig as TrackerConfig

@@ -6,6 +6,11 @@ poses, status, confidence, per-cue correspondence counts and host timings. With 
 it runs the RBOT protocol: a frame beyond 5 cm / 5° of the ground truth counts as a failure and tracking
 restarts from the true pose of that frame. `write_tracking_results` writes the BOP results CSV and the
 per-frame JSON lines beside it.
+
+An articulated object (`models/obj_XXXXXX.urdf`, read by `jaxtrack.io.read_urdf`) is tracked the same
+way with its joint angles: the first frame's scene_gt.json "joints" give Θ0, the CSV holds the root
+link's pose, and NAME.joints.csv beside it one row per frame with a column per movable joint (URDF
+names and units: radians, metres).
 """
 
 from __future__ import annotations
@@ -43,6 +48,8 @@ class TrackingRun:
         reset: (F,) bool, tracking restarted from the ground truth at this frame (RBOT protocol).
         crops: per frame the (h, w) crop size class of the step (a new class is a new compilation),
             None for the first frame and out-of-view frames.
+        joint_names: (J,) the URDF's movable joints in the order of theta's columns (empty when rigid);
+            joint_scale: (J,) model units (radians, mm) per URDF unit (radians, metres).
     """
 
     frame_ids: list
@@ -57,6 +64,13 @@ class TrackingRun:
     timings: list
     reset: np.ndarray
     crops: list | None = None
+    joint_names: tuple = ()
+    joint_scale: np.ndarray | None = None
+
+    def joints_urdf(self) -> np.ndarray:
+        """(F, J) joint values in URDF units (radians, metres)."""
+        scale = np.ones(len(self.joint_names)) if self.joint_scale is None else np.asarray(self.joint_scale)
+        return self.theta / scale
 
     def T_cam_obj(self, camera: int = 0) -> np.ndarray:
         """(F, 4, 4) estimated object pose in camera `camera` (position in `camera_ids`)."""
@@ -105,6 +119,7 @@ def track_sequence(
     config: TrackerConfig | None = None,
     params: TrackerParams | None = None,
     init_pose: np.ndarray | None = None,
+    init_joints: dict | None = None,
     reset_on_failure: bool = False,
     max_frames: int | None = None,
     progress: bool = True,
@@ -117,7 +132,10 @@ def track_sequence(
         cues: the cue subset (ignored when `config` is given).
         cameras: view indices to use (default: all).
         obj_id: the object (default: the only, or the smallest, id with a mesh).
-        init_pose: (4, 4) model → camera-0 pose of the first frame (default: its ground truth).
+        init_pose: (4, 4) model → camera-0 pose of the first frame (default: its ground truth); the root
+            link's pose for an articulated object.
+        init_joints: articulated objects: {joint name: value} (URDF units) of the first frame (default: the
+            first frame's scene_gt.json "joints"; joints not named are 0).
         reset_on_failure: the RBOT protocol (needs ground truth for every frame).
         max_frames: track only the first frames.
         progress: show a progress bar with the frame rate.
@@ -125,7 +143,8 @@ def track_sequence(
             so that per-frame output (an overlay video) needs no frame kept in memory.
 
     Raises:
-        ValueError: a camera index out of range, an unknown object, no initial pose.
+        ValueError: a camera index out of range, an unknown object, no initial pose, a joint named in
+            scene_gt.json or `init_joints` that the URDF lacks.
     """
     from ..io import Sequence, load_mesh, read_sequence
 
@@ -158,10 +177,18 @@ def track_sequence(
         raise ValueError(f"max_frames must be ≥ 1, got {max_frames}")
     if reset_on_failure and gt is None:
         raise ValueError("reset_on_failure needs ground-truth poses in scene_gt.json")
-    mesh = load_mesh(seq.model_paths[obj_id])
-    config = TrackerConfig(cues=tuple(cues)) if config is None else config
-    tracker = Tracker(mesh, rig, config=config, params=params)
     n = seq.num_frames if max_frames is None else min(seq.num_frames, int(max_frames))
+    model_path = seq.model_paths[obj_id]
+    articulated = None
+    if model_path.suffix.lower() == ".urdf":
+        articulated = _articulated(model_path, view0, obj_id, init_joints, n)
+        mesh, model, theta0, theta_gt = articulated["mesh"], articulated["model"], articulated["theta0"], articulated["theta_gt"]
+    else:
+        if init_joints:
+            raise ValueError(f"init_joints given, but obj_id {obj_id} is rigid ({model_path.name})")
+        mesh, model, theta0, theta_gt = load_mesh(model_path), None, None, None
+    config = TrackerConfig(cues=tuple(cues)) if config is None else config
+    tracker = Tracker(mesh, rig, model=model, config=config, params=params)
     T_world_gt = None if gt is None else np.einsum("ij,fjk->fik", np.linalg.inv(T_cam0_world), gt)
 
     def frames(k):
@@ -185,7 +212,7 @@ def track_sequence(
 
     start = time.perf_counter()
     images = frames(0)
-    state = tracker.start(images, np.linalg.inv(T_cam0_world) @ init_pose)
+    state = tracker.start(images, np.linalg.inv(T_cam0_world) @ init_pose, theta0)
     poses, thetas = [np.asarray(state.T_world_root, np.float64)], [np.asarray(state.theta, np.float64)]
     status, conf = [Status.OK.name], [1.0]
     counts = [np.zeros((len(views), 3), np.int64)]
@@ -203,7 +230,7 @@ def track_sequence(
         T = np.asarray(result.T_world_root, np.float64)
         did_reset = False
         if reset_on_failure and T_world_gt is not None and _failed(T_cam0_world @ T, gt[k]):
-            state = tracker.start(images, T_world_gt[k])
+            state = tracker.start(images, T_world_gt[k], None if theta_gt is None else theta_gt[k])
             did_reset = True
         poses.append(T)
         thetas.append(np.asarray(result.theta, np.float64))
@@ -226,14 +253,43 @@ def track_sequence(
         frame_ids=list(view0.frame_ids[:n]), obj_id=int(obj_id), T_world_root=np.stack(poses), theta=np.stack(thetas),
         T_cam_world=T_cam_world, camera_ids=views,
         status=status, confidence=np.asarray(conf), counts=np.stack(counts), timings=timings, reset=np.asarray(reset),
-        crops=crops,
+        crops=crops, joint_names=() if articulated is None else articulated["names"],
+        joint_scale=None if articulated is None else articulated["scale"],
     )
+
+
+def _articulated(model_path: pathlib.Path, view0, obj_id: int, init_joints: dict | None, n: int) -> dict:
+    """Read a URDF model and its first-frame joint values (URDF units) → model-unit Θ0 and ground truth."""
+    from ..io import read_urdf
+
+    art = read_urdf(model_path, package_dirs=[model_path.parent])
+    gt_joints = view0.joints.get(obj_id, {})
+    where = f"{view0.folder / 'scene_gt.json'}"
+    unknown = sorted(set(gt_joints) - set(art.joint_names))
+    if unknown:
+        raise ValueError(f"{where}: joint(s) {unknown} of obj_id {obj_id} are not in {model_path.name} "
+                         f"(its movable joints: {list(art.joint_names)})")
+    if init_joints is None:
+        init_joints = {name: float(v[0]) for name, v in gt_joints.items() if np.isfinite(v[0])}
+    try:
+        theta0 = art.joint_vector(init_joints)
+    except ValueError as e:
+        raise ValueError(f"init_joints: {e}") from None
+    theta_gt = None
+    if gt_joints and all(name in gt_joints for name in art.joint_names if art.mimic[art.joint_names.index(name)] is None):
+        theta_gt = np.stack([art.joint_vector({name: float(v[k]) for name, v in gt_joints.items() if np.isfinite(v[k])})
+                             for k in range(n)])
+    return {"mesh": art.mesh, "model": art.model, "theta0": theta0, "theta_gt": theta_gt,
+            "names": tuple(art.joint_names), "scale": np.asarray(art.joint_scale, np.float64)}
 
 
 def write_tracking_results(run: TrackingRun, path: str | os.PathLike) -> tuple[pathlib.Path, pathlib.Path]:
     """The BOP results CSV (one row per frame and camera view: scene_id = view index) and, beside it,
     NAME.frames.jsonl with the status, confidence, counts per cue and camera, timings, reset flag and the
     step's crop size class.
+
+    For an articulated run, NAME.joints.csv too: `scene_id,im_id,obj_id,<joint names>`, one row per
+    frame, values in URDF units (radians, metres).
 
     Returns:
         (csv path, jsonl path).
@@ -261,7 +317,50 @@ def write_tracking_results(run: TrackingRun, path: str | os.PathLike) -> tuple[p
                 "timings": {key: round(float(v), 6) for key, v in run.timings[k].items()}, "reset": bool(run.reset[k]),
                 "crop": None if run.crops is None or run.crops[k] is None else list(run.crops[k]),
             }) + "\n")
+    if run.joint_names:
+        write_joint_results(path.with_name(path.stem + ".joints.csv"), run)
     return csv, jsonl
+
+
+def write_joint_results(path: str | os.PathLike, run: TrackingRun) -> pathlib.Path:
+    """NAME.joints.csv: `scene_id,im_id,obj_id,<joint names>` with one row per frame (URDF units)."""
+    from ..io import prepare_output_file
+
+    path = prepare_output_file(path, "write_joint_results: path")
+    values = run.joints_urdf()
+    lines = [",".join(("scene_id", "im_id", "obj_id", *run.joint_names))]
+    for k, im_id in enumerate(run.frame_ids):
+        lines.append(",".join((str(int(run.camera_ids[0])), str(int(im_id)), str(int(run.obj_id)),
+                               *(f"{v:.8f}" for v in values[k]))))
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def read_joint_results(path: str | os.PathLike) -> tuple[list, tuple, np.ndarray]:
+    """Read NAME.joints.csv: (im_ids, joint names, (F, J) values in URDF units).
+
+    Raises:
+        ValueError: naming the file and line of a malformed row.
+    """
+    path = pathlib.Path(path)
+    if not path.is_file():
+        raise ValueError(f"{path}: missing")
+    lines = [ln for ln in path.read_text().splitlines() if ln.strip()]
+    header = lines[0].split(",") if lines else []
+    if header[:3] != ["scene_id", "im_id", "obj_id"]:
+        raise ValueError(f"{path}: header must start with 'scene_id,im_id,obj_id', got {','.join(header[:3])!r}")
+    names = tuple(header[3:])
+    im_ids, values = [], []
+    for n, line in enumerate(lines[1:], start=2):
+        parts = line.split(",")
+        if len(parts) != len(header):
+            raise ValueError(f"{path}:{n}: expected {len(header)} fields, got {len(parts)}")
+        try:
+            im_ids.append(int(parts[1]))
+            values.append([float(v) for v in parts[3:]])
+        except ValueError as e:
+            raise ValueError(f"{path}:{n}: malformed number ({e})") from None
+    return im_ids, names, np.asarray(values, np.float64).reshape(len(im_ids), len(names))
 
 
 @dataclasses.dataclass
