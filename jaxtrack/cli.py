@@ -355,15 +355,38 @@ def _prepare_tracking(args, seq, out):
     prepare_output_file(out, "-o/--out", suffixes=(".csv",))
     _check_writable(out, "-o/--out")
     _check_writable(out.with_name(out.stem + ".frames.jsonl"), "-o/--out")
-    tm = load_trimesh(seq.model_paths[obj_id])  # an unreadable or empty mesh fails here, named
+    model_path = seq.model_paths[obj_id]
+    pose_vertices = None
+    if model_path.suffix.lower() == ".urdf":  # articulated: the URDF and its joints, checked now
+        from jaxtrack.io import read_urdf
+
+        art = read_urdf(model_path, package_dirs=[model_path.parent])
+        unknown = sorted(set(view0.joints.get(obj_id, {})) - set(art.joint_names))
+        if unknown:
+            raise ValueError(f"{view0.folder / 'scene_gt.json'}: joint(s) {unknown} are not in {model_path.name} "
+                             f"(its movable joints: {list(art.joint_names)})")
+        _check_writable(out.with_name(out.stem + ".joints.csv"), "-o/--out")
+        vertices, faces = np.asarray(art.mesh.vertices), np.asarray(art.mesh.faces)
+        part = np.asarray(art.mesh.vertex_part)
+
+        def pose_vertices(theta):
+            T_parts = np.stack([art.link_poses(theta)[name] @ np.linalg.inv(art.T_root_link0[name])
+                                for name in art.part_names])
+            return np.einsum("vij,vj->vi", T_parts[part, :3, :3], vertices) + T_parts[part, :3, 3]
+    else:
+        if args.joint_limits:
+            raise ValueError(f"--joint-limits: obj_id {obj_id} is rigid ({model_path.name}); limits come from a URDF")
+        tm = load_trimesh(model_path)  # an unreadable or empty mesh fails here, named
+        vertices, faces = tm.vertices, tm.faces
     recorder = None
     if args.video is not None:
         H, W = view0.height, view0.width
         writer = OverlayWriter(args.video, (H, W * len(views)), fps=args.fps, what="--video")
-        recorder = OverlayRecorder(writer, tm.vertices, tm.faces, np.stack([seq.views[c].K for c in views]))
+        recorder = OverlayRecorder(writer, vertices, faces, np.stack([seq.views[c].K for c in views]),
+                                   pose_vertices=pose_vertices)
     kwargs = {"cues": args.cues, "cameras": views, "obj_id": obj_id, "init_pose": init_pose,
               "reset_on_failure": args.reset_on_failure, "max_frames": args.max_frames, "progress": not args.quiet,
-              "on_frame": recorder}
+              "on_frame": recorder, **({"joint_limits": True} if args.joint_limits else {})}
     return kwargs, recorder
 
 
@@ -408,7 +431,7 @@ def _tracking_summary(run, seq, cues, csv, jsonl, recorder) -> None:
     print(line)
     counts = Counter(run.status)
     print("status: " + ", ".join(f"{k} {v}" for k, v in counts.most_common()) + f"; resets {int(np.sum(run.reset))}")
-    print(f"results -> {csv} (+ {jsonl.name})")
+    print(f"results -> {csv} (+ {jsonl.name}" + (f", {csv.stem}.joints.csv" if run.joint_names else "") + ")")
     if recorder is not None:
         kind = "video" if recorder.writer.is_video else "PNG folder"
         print(f"overlay {kind} -> {recorder.writer.path} ({recorder.writer.count} frames)")
@@ -523,7 +546,7 @@ def _cmd_demo(args) -> int:
     seq = read_sequence(seq_dir)
     track_args = argparse.Namespace(cameras=None, obj_id=None, init_pose=None, reset_on_failure=False, max_frames=None,
                                     cues=args.cues, video=str(out / "overlay.mp4"), fps=10.0, quiet=args.quiet,
-                                    no_cache=args.no_cache)
+                                    no_cache=args.no_cache, joint_limits=False)
     run, csv, jsonl, recorder = _track(track_args, seq, out / "results.csv")
     print(f"jaxtrack demo: a {cfg.size_mm:g} mm photo-textured box, {frames} frames of {W}x{H}, random motion "
           f"(~{cfg.step_px:g} px, {cfg.step_deg:g}° per frame), cues {'+'.join(args.cues)}")
@@ -616,6 +639,8 @@ def build_parser() -> argparse.ArgumentParser:
                        help="first pose, model → first view's camera (mm), instead of scene_gt.json's: a .npy/.json/.txt "
                        "file or 12 (3x4) / 16 (4x4) numbers, row-major, comma-separated")
     track.add_argument("--max-frames", dest="max_frames", metavar="N", type=_number(int, 1), help="track only the first N frames")
+    track.add_argument("--joint-limits", dest="joint_limits", action="store_true",
+                       help="articulated (URDF) models: keep the joints within the URDF's limits (off: the method uses no priors)")
     track.add_argument("--no-cache", action="store_true", help="do not use the on-disk compilation cache")
     track.add_argument("--quiet", action="store_true", help="no progress bar")
     track.set_defaults(func=_cmd_track)

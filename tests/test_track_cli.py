@@ -49,7 +49,7 @@ class _FakeTracker:
     built: typing.ClassVar[list] = []
     truth = None  # callable frame index -> (4, 4) true world pose, set by the fixture
 
-    def __init__(self, mesh, cameras, config=None, params=None):
+    def __init__(self, mesh, cameras, model=None, config=None, params=None, joint_limits=None):
         self.cues, self.num_cameras, self.k = config.cues, cameras.K.shape[0], 0
         _FakeTracker.built.append(self)
 

@@ -251,22 +251,28 @@ class OverlayRecorder:
         K: (C, 3, 3) intrinsics of the tracked cameras; dist: (C, 5) or None.
         thickness: line width in pixels; None: 2 for a video (its codec's halved chroma resolution washes
             1-px colour lines out) and for frames from 400 px wide, else 1.
+        pose_vertices: articulated models: Θ (J,) → (V, 3) the vertices posed by the joints in the root
+            frame (e.g. forward kinematics of `ArticulatedModel`); None for a rigid mesh.
     """
 
     def __init__(self, writer: OverlayWriter, vertices: npt.ArrayLike, faces: npt.ArrayLike, K: npt.ArrayLike,
-                 dist: npt.ArrayLike | None = None, thickness: int | None = None):
+                 dist: npt.ArrayLike | None = None, thickness: int | None = None, pose_vertices=None):
         self.writer = writer
         self.thickness = thickness
         self.vertices = np.asarray(vertices, np.float64)
         self.faces = np.asarray(faces, np.int64)
         self.K = np.asarray(K, np.float64)
         self.dist = None if dist is None else np.asarray(dist, np.float64)
+        self.pose_vertices = pose_vertices
 
     def __call__(self, record: FrameRecord) -> None:
         thickness = self.thickness
         if thickness is None:
             thickness = 2 if getattr(self.writer, "is_video", False) or record.images.shape[2] >= 400 else 1
-        p_cam = [self.vertices @ T[:3, :3].T + T[:3, 3] for T in np.asarray(record.T_cam_obj, np.float64)]
+        vertices = self.vertices
+        if self.pose_vertices is not None and record.theta is not None:
+            vertices = np.asarray(self.pose_vertices(record.theta), np.float64)
+        p_cam = [vertices @ T[:3, :3].T + T[:3, 3] for T in np.asarray(record.T_cam_obj, np.float64)]
         text = f"frame {record.im_id}  {record.status}  conf {record.confidence:.2f}" + ("  RESET" if record.reset else "")
         self.writer.write(overlay_frame(record.images, p_cam, self.faces, self.K, self.dist, record.region_phi,
                                         record.offsets, text, thickness))

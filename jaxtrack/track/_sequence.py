@@ -50,6 +50,8 @@ class TrackingRun:
             None for the first frame and out-of-view frames.
         joint_names: (J,) the URDF's movable joints in the order of theta's columns (empty when rigid);
             joint_scale: (J,) model units (radians, mm) per URDF unit (radians, metres).
+        lost_joints: per frame, the joints whose moved part lost its silhouette (the segmentation covers
+            less than `lost_iou` of the part's visible model silhouette); empty when rigid or region is off.
     """
 
     frame_ids: list
@@ -66,6 +68,7 @@ class TrackingRun:
     crops: list | None = None
     joint_names: tuple = ()
     joint_scale: np.ndarray | None = None
+    lost_joints: list | None = None
 
     def joints_urdf(self) -> np.ndarray:
         """(F, J) joint values in URDF units (radians, metres)."""
@@ -89,6 +92,7 @@ class FrameRecord:
         region_phi: (C, h, w) the segmentation Φ on the crops (> 0 inside), None for the first frame or
             when the object was out of view; offsets: (C, 2) (y0, x0) of the crops, or None.
         reset: tracking restarted from the ground truth after this frame (RBOT protocol).
+        theta: (J,) the reported joint values (model units); empty for a rigid object.
     """
 
     index: int
@@ -101,6 +105,7 @@ class FrameRecord:
     region_phi: np.ndarray | None
     offsets: np.ndarray | None
     reset: bool
+    theta: np.ndarray | None = None
 
 
 def _failed(T_est, T_gt, max_deg: float = 5.0, max_mm: float = 50.0) -> bool:
@@ -120,6 +125,7 @@ def track_sequence(
     params: TrackerParams | None = None,
     init_pose: np.ndarray | None = None,
     init_joints: dict | None = None,
+    joint_limits: bool = False,
     reset_on_failure: bool = False,
     max_frames: int | None = None,
     progress: bool = True,
@@ -136,6 +142,7 @@ def track_sequence(
             link's pose for an articulated object.
         init_joints: articulated objects: {joint name: value} (URDF units) of the first frame (default: the
             first frame's scene_gt.json "joints"; joints not named are 0).
+        joint_limits: articulated objects: keep Θ within the URDF's limits (off by default, as the method).
         reset_on_failure: the RBOT protocol (needs ground truth for every frame).
         max_frames: track only the first frames.
         progress: show a progress bar with the frame rate.
@@ -187,8 +194,11 @@ def track_sequence(
         if init_joints:
             raise ValueError(f"init_joints given, but obj_id {obj_id} is rigid ({model_path.name})")
         mesh, model, theta0, theta_gt = load_mesh(model_path), None, None, None
+    if joint_limits and articulated is None:
+        raise ValueError(f"joint_limits: obj_id {obj_id} is rigid ({model_path.name}); limits come from a URDF")
     config = TrackerConfig(cues=tuple(cues)) if config is None else config
-    tracker = Tracker(mesh, rig, model=model, config=config, params=params)
+    limits = (articulated["lower"], articulated["upper"]) if joint_limits else None
+    tracker = Tracker(mesh, rig, model=model, config=config, params=params, joint_limits=limits)
     T_world_gt = None if gt is None else np.einsum("ij,fjk->fik", np.linalg.inv(T_cam0_world), gt)
 
     def frames(k):
@@ -207,7 +217,7 @@ def track_sequence(
                 index=k, im_id=int(view0.frame_ids[k]), images=images, T_world_root=T,
                 T_cam_obj=np.einsum("cij,jk->cik", T_cam_world, T), status=status[-1], confidence=conf[-1],
                 region_phi=None if phi is None else np.asarray(phi), offsets=None if offsets is None else np.asarray(offsets),
-                reset=reset[-1],
+                reset=reset[-1], theta=thetas[-1],
             ))
 
     start = time.perf_counter()
@@ -219,6 +229,8 @@ def track_sequence(
     timings = [{"total_s": time.perf_counter() - start}]
     reset = [False]
     crops = [None]
+    lost_joints = [[]]
+    lost_iou = None if articulated is None else float(tracker.params_for((64, 64)).lost_iou)
     report(0, images, poses[0])
     if bar is not None:
         bar.update(1)
@@ -242,6 +254,11 @@ def track_sequence(
         timings.append(info["timings"])
         reset.append(did_reset)
         crops.append(None if info.get("crop_shape") is None else tuple(int(v) for v in info["crop_shape"]))
+        if articulated is not None:
+            support = np.asarray(result.part_support)[articulated["child_part"]]
+            lost_joints.append([name for name, s in zip(articulated["names"], support) if 0 <= s < lost_iou])
+        else:
+            lost_joints.append([])
         has_crop = info.get("offsets") is not None
         report(k, images, T, result.region_phi if has_crop else None, info["offsets"] if has_crop else None)
         if bar is not None:
@@ -254,7 +271,7 @@ def track_sequence(
         T_cam_world=T_cam_world, camera_ids=views,
         status=status, confidence=np.asarray(conf), counts=np.stack(counts), timings=timings, reset=np.asarray(reset),
         crops=crops, joint_names=() if articulated is None else articulated["names"],
-        joint_scale=None if articulated is None else articulated["scale"],
+        joint_scale=None if articulated is None else articulated["scale"], lost_joints=lost_joints,
     )
 
 
@@ -280,7 +297,9 @@ def _articulated(model_path: pathlib.Path, view0, obj_id: int, init_joints: dict
         theta_gt = np.stack([art.joint_vector({name: float(v[k]) for name, v in gt_joints.items() if np.isfinite(v[k])})
                              for k in range(n)])
     return {"mesh": art.mesh, "model": art.model, "theta0": theta0, "theta_gt": theta_gt,
-            "names": tuple(art.joint_names), "scale": np.asarray(art.joint_scale, np.float64)}
+            "names": tuple(art.joint_names), "scale": np.asarray(art.joint_scale, np.float64),
+            "lower": np.asarray(art.lower, np.float64), "upper": np.asarray(art.upper, np.float64),
+            "child_part": np.asarray(art.model.joint_child_part)}
 
 
 def write_tracking_results(run: TrackingRun, path: str | os.PathLike) -> tuple[pathlib.Path, pathlib.Path]:
@@ -316,6 +335,7 @@ def write_tracking_results(run: TrackingRun, path: str | os.PathLike) -> tuple[p
                 "im_id": int(im_id), "status": run.status[k], "confidence": float(run.confidence[k]), "counts": counts,
                 "timings": {key: round(float(v), 6) for key, v in run.timings[k].items()}, "reset": bool(run.reset[k]),
                 "crop": None if run.crops is None or run.crops[k] is None else list(run.crops[k]),
+                **({"lost_joints": run.lost_joints[k]} if run.joint_names and run.lost_joints else {}),
             }) + "\n")
     if run.joint_names:
         write_joint_results(path.with_name(path.stem + ".joints.csv"), run)

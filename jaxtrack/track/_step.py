@@ -111,6 +111,8 @@ class TrackerParams(eqx.Module):
         occlusion: the occlusion threshold 1/4 and update rate 1/8 (eq. 9-10).
         lost_iou, uncertain_iou: silhouette agreement below which a frame is lost / uncertain.
         inlier_px: a motion correspondence agrees with the final pose within this many pixels.
+        theta_lower, theta_upper: (J,) joint limits (model units); ±inf (the default: the method uses no
+            priors) leaves Θ free. The prediction and the refined Θ are projected onto them.
     """
 
     weights: CueWeights
@@ -122,6 +124,8 @@ class TrackerParams(eqx.Module):
     lost_iou: jax.Array
     uncertain_iou: jax.Array
     inlier_px: jax.Array
+    theta_lower: jax.Array
+    theta_upper: jax.Array
 
 
 class TrackerSetup(eqx.Module):
@@ -173,6 +177,9 @@ class FrameResult(eqx.Module):
         occluded_fraction: (C,) fraction of object pixels of frame t+1 detected as occluded.
         iterations: refinement rounds run.
         region_phi: (C, h, w) the segmentation Φ of frame t+1 on the crop (for overlays).
+        part_support: (P,) per part, the fraction of its unoccluded model silhouette (all cameras) that the
+            segmentation covers; −1 where the part is not seen or the region cue is off. A limb whose
+            support falls below `lost_iou` has lost its silhouette.
     """
 
     T_world_root: jax.Array
@@ -187,6 +194,7 @@ class FrameResult(eqx.Module):
     occluded_fraction: jax.Array
     iterations: jax.Array
     region_phi: jax.Array
+    part_support: jax.Array
 
 
 def _flatten_cameras(corr: Correspondences) -> Correspondences:
@@ -279,7 +287,7 @@ def track_step(
                           SolverConfig(max_steps=config.prediction_steps))
         use = is_usable(pred.status)
         T_pred = jnp.where(use, pred.T_world_root, T_t)
-        theta_pred = jnp.where(use, pred.theta, theta_t)
+        theta_pred = jnp.clip(jnp.where(use, pred.theta, theta_t), params.theta_lower, params.theta_upper)
         if "sift" in config.cues:  # the back-projection check against the preliminary pose
             is_sift = motion.cue == Cue.SIFT
             checked = backprojection_filter(motion, cams, model, T_pred, theta_pred, params.sift)
@@ -293,7 +301,7 @@ def track_step(
         problem = RegionProblem(setup.mesh, model, setup.cameras, setup.plan, config.region)
         res = refine_pose_region(problem, crops_t1, offsets, state.region, params.region, T_pred, theta_pred,
                                  extra=motion, weights=params.weights)
-        T_new, theta_new, region_state = res.T_world_root, res.theta, res.state
+        T_new, theta_new, region_state = res.T_world_root, jnp.clip(res.theta, params.theta_lower, params.theta_upper), res.state
         solve_status, iterations, phi = res.status, res.iterations, res.phi
         fused = res.correspondences
     else:
@@ -326,6 +334,14 @@ def track_step(
     union = jnp.sum(seg | sil_t1, axis=(1, 2))
     iou = jnp.where(union > 0, inter / jnp.maximum(union, 1), 0.0).astype(dtype)
     seen = jnp.sum(sil_t1, axis=(1, 2)) > 0
+    # Per part (limb): how much of its unoccluded silhouette the segmentation supports.
+    own = sil_t1 & ~occluded
+    part_ids = jnp.where(own, ren_t1.part_id, model.num_parts)  # a spill bin for background pixels
+    part_pixels = jnp.zeros(model.num_parts + 1, dtype).at[part_ids.ravel()].add(1.0)[:-1]
+    part_inside = jnp.zeros(model.num_parts + 1, dtype).at[jnp.where(seg, part_ids, model.num_parts).ravel()].add(1.0)[:-1]
+    part_support = jnp.where(part_pixels > 0, part_inside / jnp.maximum(part_pixels, 1.0), -1.0)
+    if "region" not in config.cues:
+        part_support = -jnp.ones_like(part_support)
     if motion is not None:
         inliers = _motion_inliers(motion, cams, model, T_new, theta_new, params.inlier_px).astype(dtype)
     else:
@@ -360,6 +376,6 @@ def track_step(
         T_world_root=T_new, theta=theta_new, T_pred=T_pred, theta_pred=theta_pred, status=status.astype(jnp.int32),
         confidence=confidence, iou=iou, counts=counts, motion_inliers=inliers,
         occluded_fraction=(jnp.sum(occluded, axis=(1, 2)) / n_obj).astype(dtype),
-        iterations=jnp.asarray(iterations, jnp.int32), region_phi=phi,
+        iterations=jnp.asarray(iterations, jnp.int32), region_phi=phi, part_support=part_support.astype(dtype),
     )
     return new_state, result

@@ -62,7 +62,7 @@ def _initial_appearance_jit(setup: TrackerSetup, frames, T, theta, params: Occlu
 
 def default_params(
     model: KinematicModel, crop_shape: tuple[int, int] = (256, 256), dtype=jnp.float32, weights: CueWeights | None = None,
-    occlusion: OcclusionParams | None = None,
+    occlusion: OcclusionParams | None = None, joint_limits: tuple | None = None,
 ) -> TrackerParams:
     """The method's parameters: quadratic flow smoothness α = 800 for a rigid object, robust α = 50 for
     a chain (β = 12 / 3), region λ = 0.05, ν = 0.001 |Ω|^0.7 (Ω the crop), ρ = 12, occlusion 1/4 and 1/8.
@@ -75,12 +75,23 @@ def default_params(
     tea box 1.43° / 0.96° / 0.61°; synthetic demo scene 2.04° / 1.55° / 1.60°; occluded box (lost
     either way) 10.7° / 8.8° / 8.5°. Where the region cue is poor (a 50 px textured box on a similar
     background, tests/test_tracker.py) less flow weight is worse: 2.7° → 5.0° after one frame.
+
+    `joint_limits` = (lower, upper), (J,) each in model units (radians, mm), e.g. a URDF's
+    (`ArticulatedModel.lower/upper`); by default none (±inf), as the method uses no priors.
     """
     if weights is None:
         weights = CueWeights(flow=TRACKER_FLOW_FACTOR)
     flow = rigid_params() if model.num_joints == 0 else articulated_params()
     flow = jax.tree.map(lambda a: jnp.asarray(a, dtype), flow)
     beta = 3.0 if flow.robust_smoothness else 12.0
+    J = model.num_joints
+    lower, upper = jnp.full((J,), -jnp.inf, dtype), jnp.full((J,), jnp.inf, dtype)
+    if joint_limits is not None:
+        lo, hi = (np.asarray(a, np.float64) for a in joint_limits)
+        if lo.shape != (J,) or hi.shape != (J,) or np.any(np.isnan(lo)) or np.any(np.isnan(hi)) or np.any(lo > hi):
+            raise ValueError(f"joint_limits must be (lower, upper) of shape ({J},) with lower ≤ upper, got shapes "
+                             f"{lo.shape}, {hi.shape}")
+        lower, upper = jnp.asarray(lo, dtype), jnp.asarray(hi, dtype)
     return TrackerParams(
         weights=jax.tree.map(lambda a: jnp.asarray(a, dtype), weights),
         flow=flow,
@@ -91,6 +102,8 @@ def default_params(
         lost_iou=jnp.asarray(0.5, dtype),
         uncertain_iou=jnp.asarray(0.8, dtype),
         inlier_px=jnp.asarray(3.0, dtype),
+        theta_lower=lower,
+        theta_upper=upper,
     )
 
 
@@ -112,11 +125,13 @@ class Tracker:
         sift: host SIFT settings.
         margin: pixels of context around the projected model in each crop.
         texel_mm: appearance-model texel size (default: about one pixel at the first pose).
+        joint_limits: (lower, upper) (J,) joint limits in model units for the default parameters (none by
+            default: the method uses no priors).
     """
 
     def __init__(self, mesh: Mesh, cameras: Camera, model: KinematicModel | None = None, config: TrackerConfig | None = None,
                  params: TrackerParams | None = None, sift: SiftConfig | None = None, margin: int = 24,
-                 texel_mm: float | None = None):
+                 texel_mm: float | None = None, joint_limits: tuple | None = None):
         if not isinstance(mesh, Mesh):
             raise TypeError(f"mesh must be a jaxtrack.render.Mesh (see make_mesh / io.load_mesh), got {type(mesh).__name__}")
         self.mesh = mesh
@@ -137,6 +152,9 @@ class Tracker:
         self._default_params: dict = {}
         self.last_motion_px = 0.0
         self.crop_shape: tuple[int, int] | None = None  # kept while the object fits (one compile per class)
+        self.joint_limits = joint_limits
+        if joint_limits is not None:  # checked now, not at the first frame
+            default_params(self.model, (64, 64), self.dtype, joint_limits=joint_limits)
 
     @property
     def num_cameras(self) -> int:
@@ -204,7 +222,8 @@ class Tracker:
         if self.user_params is not None:
             return self.user_params
         if crop_shape not in self._default_params:  # built once per crop size, not per frame
-            self._default_params[crop_shape] = default_params(self.model, crop_shape, self.dtype)
+            self._default_params[crop_shape] = default_params(self.model, crop_shape, self.dtype,
+                                                              joint_limits=self.joint_limits)
         return self._default_params[crop_shape]
 
     # --- tracking ---------------------------------------------------------------------------------
@@ -309,4 +328,5 @@ class Tracker:
             status=jnp.asarray(Status.OUT_OF_VIEW, jnp.int32), confidence=jnp.zeros((), dt), iou=jnp.zeros((C,), dt),
             counts=jnp.zeros((C, 3), jnp.int32), motion_inliers=jnp.zeros((), dt), occluded_fraction=jnp.zeros((C,), dt),
             iterations=jnp.zeros((), jnp.int32), region_phi=-jnp.ones((C, 1, 1), dt),
+            part_support=-jnp.ones((self.model.num_parts,), dt),
         )
