@@ -33,8 +33,10 @@ import sys
 import tempfile
 import time
 
+import numpy as np
+
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
-import noise_table as nt  # shared report header of the issue-12 experiments
+import noise_table as nt  # shared run / scoring helpers of the issue-12 experiments
 import track_presets as tp
 
 RESULTS = pathlib.Path(__file__).resolve().parent / "results"
@@ -57,6 +59,16 @@ def scene_config(args, variant: str, step: int):
         raise SystemExit(f"frame_rate: --frames {base.frames} must be a multiple of the frame step {step}")
     return dataclasses.replace(base, frames=base.frames // step, subsample=step, step_px=base.step_px * step,
                                step_deg=base.step_deg * step)
+
+
+def rbot_scores(r: dict) -> dict:
+    """Success within 5 cm / 5° and mean errors over the tracked frames (frame 0 initialises and is not counted)."""
+    from jaxtrack.track import success_mask
+
+    rot, trans = np.asarray(r["rot_deg"][1:]), np.asarray(r["trans_mm"][1:])
+    ok = success_mask(rot, trans)
+    return {"frames": int(ok.size), "success": float(ok.mean()), "failures": int((~ok).sum()),
+            "rot_deg": float(rot.mean()), "trans_mm": float(trans.mean()), "ms": r["ms"], "compiles": r.get("compiles")}
 
 
 def report(args, command, variants, steps, subsets, rows, sizes, load_start, load_end, elapsed_s, skipped, failed) -> str:
@@ -185,7 +197,7 @@ def main(argv=None):
                 sizes[(v, s)] = cfg
                 for config in tp.M3T_CONFIGS if use_m3t else ():
                     try:
-                        r = tp.run_m3t(seqs[(v, s)], config, True, work)
+                        r = rbot_scores(nt.m3t_run(seqs[(v, s)], config, work, reset=True))
                     except (RuntimeError, subprocess.TimeoutExpired) as e:
                         failed.append(f"M3T {config} on {v} S = {s} ({type(e).__name__}: {str(e).strip()[-300:]})")
                         continue
@@ -198,7 +210,8 @@ def main(argv=None):
                         continue
                     t = time.perf_counter()
                     try:
-                        r = tp.run_jaxtrack(seqs[(v, s)], subset, True, work)
+                        r = nt.track_run(seqs[(v, s)], subset, max_deg=5.0, max_mm=50.0, stop_after=None, reset=True)
+                        r = {**rbot_scores(r), "cameras": 1}
                     except Exception as e:  # noqa: BLE001 - a crash of one run is reported, the others go on
                         failed.append(f"{subset} on {v} S = {s} ({type(e).__name__}: {str(e).strip()[:300]})")
                         print(f"[frame_rate] failed: {failed[-1]}", file=sys.stderr, flush=True)

@@ -55,6 +55,14 @@ def object_diameter(seq) -> float:
     return float(pdist(np.asarray(tm.convex_hull.vertices)).max())
 
 
+def pose_errors_np(T_est, T_gt) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation (deg) and translation (mm) errors of (F, 4, 4) poses, in numpy (no JAX dispatch per frame,
+    no ADD-S: the scripts only need these two)."""
+    T_est, T_gt = np.asarray(T_est, np.float64), np.asarray(T_gt, np.float64)
+    cos = (np.einsum("fij,fij->f", T_est[:, :3, :3], T_gt[:, :3, :3]) - 1.0) / 2.0  # (trace(R_est^T R_gt) - 1) / 2
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))), np.linalg.norm(T_est[:, :3, 3] - T_gt[:, :3, 3], axis=-1)
+
+
 def failed_mask(rot_deg, trans_mm, max_deg: float, max_mm: float) -> np.ndarray:
     """The paper's failure test per frame: rotation > max_deg or translation > max_mm."""
     return (np.asarray(rot_deg) > max_deg) | (np.asarray(trans_mm) > max_mm)
@@ -68,7 +76,7 @@ def track_run(seq, subset: str, *, max_deg: float, max_mm: float, stop_after: in
     per-frame errors of the frames tracked (frame 0 included, error 0 at the given first pose), the first
     failure frame (None when none), frames whose step compiled, and the median ms per frame of the others.
     """
-    from jaxtrack.track import pose_errors, track_sequence
+    from jaxtrack.track import track_sequence
 
     view0 = seq.views[0]
     gt = view0.T_cam_obj[min(seq.model_paths)]
@@ -81,7 +89,7 @@ def track_run(seq, subset: str, *, max_deg: float, max_mm: float, stop_after: in
         traced.append(now != last[0])
         step_s.append(t - last[1])
         last[0], last[1] = now, t
-        r, d = pose_errors(record.T_cam_obj[:1], gt[record.index][None])
+        r, d = pose_errors_np(record.T_cam_obj[:1], gt[record.index][None])
         rot.append(float(r[0]))
         trans.append(float(d[0]))
         resets.append(bool(record.reset))
@@ -107,18 +115,24 @@ def track_run(seq, subset: str, *, max_deg: float, max_mm: float, stop_after: in
 
 
 def m3t_run(seq, config: str, out_dir: pathlib.Path, reset: bool = False) -> dict:
-    """M3T on camera 0 (one thread) over the whole sequence: per-frame errors against camera 0's truth."""
-    from jaxtrack.track import evaluate_tracking
+    """M3T on camera 0 (one thread) over the whole sequence: per-frame errors against camera 0's truth
+    (im_ids, rot_deg, trans_mm, reset flags, median ms per frame after the first)."""
+    from jaxtrack.io import read_bop_results
 
     csv = out_dir / f"m3t_{config}_{'reset' if reset else 'noreset'}.csv"
     cmd = [str(tp.M3T_RUN), str(seq.root), "-o", str(csv), "--config", config] + (["--reset-on-failure"] if reset else [])
     proc = subprocess.run(cmd, check=False, capture_output=True, text=True, timeout=1800)
     if proc.returncode != 0 or not csv.is_file():
         raise RuntimeError(f"M3T {config} on {seq.root} failed ({proc.returncode}): {proc.stderr[-2000:]}")
-    ev = evaluate_tracking(csv, seq, camera=0)
-    times = [float(line.rsplit(",", 1)[1]) for line in csv.read_text().splitlines()[1:] if line.strip()]
-    return {"rot_deg": ev.rot_deg, "trans_mm": ev.trans_mm, "reset": ev.reset if ev.reset is not None else np.zeros(len(ev.rot_deg), bool),
-            "ms": 1000.0 * float(np.median(times[1:])) if len(times) > 1 else float("nan"), "im_ids": ev.im_ids}
+    view0 = seq.views[0]
+    by_id = {r[1]: r for r in read_bop_results(csv) if r[0] == 0}
+    if sorted(by_id) != sorted(int(i) for i in view0.frame_ids):
+        raise RuntimeError(f"M3T {config}: {csv} has rows for {len(by_id)} of the {len(view0.frame_ids)} frames")
+    rows = [by_id[int(i)] for i in view0.frame_ids]
+    rot, trans = pose_errors_np(np.stack([r[4] for r in rows]), view0.T_cam_obj[min(seq.model_paths)])
+    times = [r[5] for r in rows]
+    return {"rot_deg": rot, "trans_mm": trans, "im_ids": np.asarray(view0.frame_ids),
+            "ms": 1000.0 * float(np.median(times[1:])) if len(times) > 1 else float("nan")}
 
 
 def header(title: str, command: str, load_start, load_end, elapsed_s: float) -> list[str]:
