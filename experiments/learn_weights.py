@@ -21,8 +21,9 @@ matches chosen on the host, the number of rounds; the derivative is the one of t
 function between those switches. The gradient check compares it with central finite differences of
 the same loss (float32, step sizes in log-factor space stated in the report).
 
-Evaluation: tracking with RBOT resets (`weight_sweep.track_batch`, one vmapped program) on other
-sequences (other seeds of the same preset), learned weights against the defaults and the paper's.
+Evaluation: tracking with RBOT resets (5 cm / 5°) on other sequences (other seeds of the same preset),
+learned weights against the defaults and the paper's, through the same compiled forward-mode step
+(its primal output is `track_step`'s; a second, plain program would cost another compilation).
 
     python experiments/learn_weights.py                   # writes experiments/results/learn_weights.{md,png,json}
     python experiments/learn_weights.py --quick --out /tmp/l.md   # smoke (occluded-box 96x72, region)
@@ -46,7 +47,7 @@ import numpy as np
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 from bench_track import source_state  # one definition of the measured-commit line
 from track_presets import preset_config, write_preset
-from weight_sweep import Problem, summarise, track_batch, with_factors
+from weight_sweep import Problem, with_factors
 
 RESULTS = pathlib.Path(__file__).resolve().parent / "results"
 START = (0.1, 1.0)  # the tracker's defaults: flow factor 0.1 (TRACKER_FLOW_FACTOR), SIFT factor 1
@@ -106,32 +107,41 @@ def frame_loss(problem: Problem, T_world: np.ndarray, dT_world: np.ndarray | Non
     return loss, 2.0 * np.einsum("nj,pnj->p", diff, dp) / (len(X) * d**2)
 
 
-def window_loss(problem: Problem, start: int, length: int, log_w: np.ndarray, tangents: bool = True):
-    """Track frames start+1 .. start+length from the true pose of `start`, forward-mode tangents carried.
+def _track(problem: Problem, start: int, stop: int, log_w: np.ndarray, tangents: bool, reset: bool = False):
+    """Track frames start+1 .. stop-1 from the true pose of `start` with the forward-mode step (its primal
+    output is `track_step`'s), tangents of the carried state included; RBOT resets when `reset` (a reset
+    restarts the tangents at zero: the true pose does not depend on θ).
 
     Returns:
-        (mean loss, (P,) d loss / d θ, statuses, seconds per step).
+        list per frame of (k, T_world_root (4, 4), dT/dθ (P, 4, 4), status, seconds).
     """
     import equinox as eqx
     import jax
     import jax.numpy as jnp
 
     from jaxtrack.cues.levelset import projected_boxes
-    from jaxtrack.track import TrackerSetup, default_params
+    from jaxtrack.track import TrackerSetup, default_params, pose_errors, success_mask
 
     tr = problem.tracker
     program = jvp_program()
-    state = tr.start(problem.frames(start), problem.T_world_gt[start])
-    tr.last_motion_px = 0.0
-    diff, static = eqx.partition(state, eqx.is_inexact_array)
     P = len(log_w)
-    dstate = jax.tree.map(lambda a: jnp.zeros((P,) + a.shape, a.dtype), diff)
-    losses, grads, statuses, secs = [], [], [], []
     lw = jnp.asarray(log_w, tr.dtype)
-    for k in range(start + 1, start + length + 1):
+
+    def restart(k):
+        state = tr.start(problem.frames(k), problem.T_world_gt[k])
+        tr.last_motion_px = 0.0
+        diff, static = eqx.partition(state, eqx.is_inexact_array)
+        return state, diff, static, jax.tree.map(lambda a: jnp.zeros((P,) + a.shape, a.dtype), diff)
+
+    state, diff, static, dstate = restart(start)
+    out, last_crop = [], None
+    for k in range(start + 1, stop):
         frames = problem.frames(k)
         before = projected_boxes(tr.mesh, tr.cameras, state.T_world_root, state.theta, tr.model)
         offsets, crop_shape = tr.crop(state.T_world_root, state.theta, before)
+        if offsets is None:  # out of every image: keep the last crop (the frame fails and, with resets, restarts)
+            offsets, crop_shape = last_crop
+        last_crop = (offsets, crop_shape)
         matches = tr.matches(state, frames)
         params = default_params(tr.model, crop_shape, tr.dtype)
         t = time.perf_counter()
@@ -139,17 +149,48 @@ def window_loss(problem: Problem, start: int, length: int, log_w: np.ndarray, ta
         diff, T, static, status, dstate, dT = program(setup, diff, static, dstate, jnp.asarray(frames), matches,
                                                       jnp.asarray(offsets), params, lw, crop_shape)
         jax.block_until_ready(dT)
-        secs.append(time.perf_counter() - t)
+        secs = time.perf_counter() - t
         state = eqx.combine(diff, static)
         moved = projected_boxes(tr.mesh, tr.cameras, state.T_world_root, state.theta, tr.model)
         if np.all(np.isfinite(moved)) and np.all(np.isfinite(before)):  # the crop margin follows the motion (Tracker.step)
             tr.last_motion_px = float(np.max(np.abs(moved - before)))
-        loss, g = frame_loss(problem, np.asarray(T), np.asarray(dT) if tangents else None, k)
-        losses.append(loss)
-        grads.append(g)
-        statuses.append(int(status))
+        out.append((k, np.asarray(T), np.asarray(dT) if tangents else None, int(status), secs))
+        if reset:
+            rot, trans = pose_errors((problem.T_cam0_world @ np.asarray(T, np.float64))[None], problem.gt[k][None])
+            if not bool(success_mask(np.asarray(rot), np.asarray(trans))):
+                state, diff, static, dstate = restart(k)
+    return out
+
+
+def window_loss(problem: Problem, start: int, length: int, log_w: np.ndarray, tangents: bool = True):
+    """Track frames start+1 .. start+length from the true pose of `start`, forward-mode tangents carried.
+
+    Returns:
+        (mean loss, (P,) d loss / d θ (None without tangents), statuses, seconds per step).
+    """
+    frames = _track(problem, start, start + length + 1, log_w, tangents)
+    losses, grads = zip(*(frame_loss(problem, T, dT, k) for k, T, dT, _, _ in frames), strict=True)
     grad = np.mean(grads, 0) if tangents else None
-    return float(np.mean(losses)), grad, statuses, secs
+    return float(np.mean(losses)), grad, [f[3] for f in frames], [f[4] for f in frames]
+
+
+def evaluate(problem: Problem, settings: dict) -> dict:
+    """RBOT tracking (5 cm / 5°, resets) of the whole sequence under each setting {name: (flow, SIFT)},
+    through the same compiled forward-mode step (no second program to compile)."""
+    from jaxtrack.track import pose_errors, success_mask
+
+    out = {}
+    for name, (f, s) in settings.items():
+        frames = _track(problem, 0, problem.num_frames, np.log([f, s]), tangents=False, reset=True)
+        T_cam = np.stack([problem.T_cam0_world @ np.asarray(T, np.float64) for _, T, _, _, _ in frames])
+        rot, trans = pose_errors(T_cam, problem.gt[1:problem.num_frames])
+        rot, trans = np.asarray(rot), np.asarray(trans)
+        ok = np.asarray(success_mask(rot, trans))
+        failed = np.nonzero(~ok)[0]
+        out[name] = (f, s, {"success": float(ok.mean()), "failures": int(failed.size),
+                            "first_failure": int(failed[0] + 1) if failed.size else None,
+                            "rot_deg": float(rot.mean()), "trans_mm": float(trans.mean())})
+    return out
 
 
 def training_loss(problems, windows, length, log_w):
@@ -308,7 +349,7 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="smoke run: occluded-box 96x72, region, one window of 2 frames")
     ap.add_argument("--preset", default="noisy-moving-camera")
     ap.add_argument("--cues", default="region+flow+sift")
-    ap.add_argument("--scale", type=float, default=0.5)
+    ap.add_argument("--scale", type=float, default=0.25)
     ap.add_argument("--train-seeds", default="11,12")
     ap.add_argument("--eval-seeds", default="13,14")
     ap.add_argument("--windows", default="0,4", help="first frames of the training windows")
@@ -397,7 +438,6 @@ def main(argv=None):
         notes.append(f"Learned factors: the iterate with the lowest training loss: flow {learned[0]:.4g}, SIFT {learned[1]:.4g}.")
         # Held-out evaluation: paper, defaults and learned weights in one vmapped program per sequence.
         evals = {}
-        # Four settings: the batch size of weight_sweep --quick, so the smoke runs share one program.
         settings = {"paper (1, 1)": (1.0, 1.0), "default (0.1, 1)": START, "learned": tuple(learned),
                     "learned flow, SIFT 1": (float(learned[0]), 1.0)}
         for s in eval_seeds:
@@ -405,9 +445,8 @@ def main(argv=None):
                 notes.append(f"Not run (time): evaluation on seed {s}.")
                 continue
             ev = load_problem(args.preset, args.scale, args.eval_frames, s, cues, seq_dir)
-            run = track_batch(ev, np.array([f for f, _ in settings.values()]), np.array([g for _, g in settings.values()]),
-                              reset=True, log=log)
-            evals[f"{args.preset} seed {s}"] = {name: (*fs, r) for (name, fs), r in zip(settings.items(), summarise(run), strict=True)}
+            evals[f"{args.preset} seed {s}"] = evaluate(ev, settings)
+            log(f"evaluated seed {s}")
     finally:
         if not args.seq_dir:
             shutil.rmtree(seq_dir, ignore_errors=True)
