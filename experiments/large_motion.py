@@ -160,6 +160,8 @@ def report(command, args, preset, base, motions, cue_sets, results, diameter, sk
     notes = [
         "",
         "Notes:",
+        ("- Persistent XLA compile cache on (~/.cache/jaxtrack/xla, as `jaxtrack track` uses it): compiles counts the "
+         "steps that traced a new program; a cache hit loads it instead of compiling." if not args.quick else ""),
         ("- Prediction: the pose solved from the flow and SIFT correspondences alone (`FrameResult.T_pred`); the "
          "region cue has no prediction, so its row shows the error of the frame-1 pose, i.e. the motion itself."),
         (f"- Scale {args.scale:g} of 640x480 with the focal length scaled alike; the motion is set in the tracked image "
@@ -172,7 +174,7 @@ def report(command, args, preset, base, motions, cue_sets, results, diameter, sk
         ("- Not run, the time budget (--budget-min " + f"{args.budget_min:g}) was spent: " + ", ".join(skipped) + ".") if skipped else "",
         ("- Failed: " + "; ".join(failed)) if failed else "",
     ]
-    lines += [n for n in notes if n]
+    lines += ["", *[n for n in notes if n]]
     return "\n".join(lines) + "\n"
 
 
@@ -249,6 +251,10 @@ def main(argv=None):
     from jaxtrack.track import model_diameter
 
     cv2.setNumThreads(1)  # OpenCV's idle workers compete with XLA on a 2-core machine
+    if not args.quick:  # a rerun (or the next script) loads compiled steps instead of compiling them again
+        from jaxtrack.cli import enable_compilation_cache
+
+        enable_compilation_cache()
     started, load_start = time.perf_counter(), os.getloadavg()
     seq_dir = pathlib.Path(args.seq_dir) if args.seq_dir else pathlib.Path(tempfile.mkdtemp(prefix="large_motion_"))
     results, skipped, failed = {}, [], []

@@ -162,6 +162,8 @@ def report(command, args, size, diameter, runs, skipped, failed, load_start, loa
     notes = [
         "",
         "Notes:",
+        ("- Persistent XLA compile cache on (~/.cache/jaxtrack/xla, as `jaxtrack track` uses it): compiles counts the "
+         "steps that traced a new program; a cache hit loads it instead of compiling." if not args.quick else ""),
         (f"- Scale {args.scale:g} of the preset's 640x480 (focal length and motion in pixels scaled alike)"
          + ("" if args.frames is None else f", the first {n} of its frames") + ", to fit the shared 2-core machine."),
         ("- Detected map: r(x) = 0 of the tracker state after the step, i.e. object pixels of the model silhouette at the "
@@ -175,7 +177,7 @@ def report(command, args, size, diameter, runs, skipped, failed, load_start, loa
          + ", ".join(f"{c} with detection {'on' if o else 'off'}" for c, o in skipped) + ".") if skipped else "",
         ("- Failed: " + "; ".join(failed)) if failed else "",
     ]
-    lines += [n for n in notes if n]
+    lines += ["", *[n for n in notes if n]]
     return "\n".join(lines) + "\n"
 
 
@@ -262,6 +264,10 @@ def main(argv=None):
     from jaxtrack.track import model_diameter
 
     cv2.setNumThreads(1)  # OpenCV's idle workers compete with XLA on a 2-core machine
+    if not args.quick:  # a rerun (or the next script) loads compiled steps instead of compiling them again
+        from jaxtrack.cli import enable_compilation_cache
+
+        enable_compilation_cache()
     started, load_start = time.perf_counter(), os.getloadavg()
     seq_dir = pathlib.Path(args.seq_dir) if args.seq_dir else pathlib.Path(tempfile.mkdtemp(prefix="occlusion_"))
     runs, skipped, failed = {}, [], []
