@@ -257,7 +257,7 @@ def plot(path, sigmas, subsets, rows, m3t, frames) -> None:
     ax.axhline(frames - 1, color="k", lw=0.6)
     ax.set_xlabel("Gaussian noise σ (grey levels)")
     ax.set_ylabel("frame of failure (line: no failure)")
-    ax.set_ylim(0, max(frames, 60) + 5)
+    ax.set_ylim(0, max(frames, PAPER["frames"]) + 5)  # the paper's failure frames (up to 196) on the same axis
     ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
