@@ -147,69 +147,59 @@ def test_vmap_over_cue_weights_equals_separate_runs(sequence, tracker, tracked):
     assert max(np.abs(p - poses[0]).max() for p in poses) > 1e-3
 
 
-def _shaded_frames(mesh, model, cameras, T, theta, background):
-    """Noise-free frames of a mesh shaded by face orientation over a photo, one per camera (our rasteriser)."""
-    from jaxtrack.geometry import select_camera
-    from jaxtrack.render import Renderer
+def _arm_urdf(path):
+    """A 3-link, 2-joint arm (boxes 110 / 80 / 70 mm long, revolute about z) written as a URDF."""
+    import trimesh
 
-    v = np.asarray(mesh.vertices)[np.asarray(mesh.faces)]
-    n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
-    shade = 0.6 + 0.4 * np.abs(n @ np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8]))
-    frames = []
-    for c in range(cameras.K.shape[0]):
-        out = Renderer(mesh, select_camera(cameras, c), model)(jnp.asarray(T), jnp.asarray(theta))
-        fid = np.asarray(out.face_id)
-        img = background.copy()
-        img[fid >= 0] = np.array([215.0, 185.0, 60.0]) * shade[fid[fid >= 0], None]
-        frames.append(img)
-    return np.stack(frames).astype(np.float32)
+    from jaxtrack.io import RobotDescription, RobotJoint, RobotLink, write_urdf
+
+    links, joints = [], []
+    for k, (x0, x1) in enumerate(((-60.0, 50.0), (50.0, 130.0), (130.0, 200.0))):
+        side = 2 * (24.0 - 4 * k)
+        box = trimesh.creation.box(extents=(x1 - x0, side, side))
+        start = 0.0 if k == 0 else (-60.0, 50.0, 130.0)[k]  # the link frame sits on its joint
+        box.apply_translation(((x0 + x1) / 2 - start, 0.0, 0.0))
+        links.append(RobotLink(f"link{k}", np.asarray(box.vertices), np.asarray(box.faces)))
+        if k:
+            T = np.eye(4)
+            T[0, 3] = 50.0 if k == 1 else 80.0
+            joints.append(RobotJoint(f"joint{k}", "revolute", f"link{k - 1}", f"link{k}", T, np.array([0.0, 0.0, 1.0]),
+                                     -2.0, 2.0))
+    return write_urdf(RobotDescription("arm", tuple(links), tuple(joints)), path)
 
 
 @pytest.mark.heavy
-def test_tracks_a_two_joint_chain_with_two_cameras():
-    """Several cameras share one state χ = (ξ, Θ), and a chain is tracked like a rigid object: a 3-part,
-    2-joint arm seen by two cameras, region + flow cues (a flat-shaded object has no SIFT texture).
+def test_tracks_a_two_joint_arm_from_urdf_with_two_cameras(tmp_path):
+    """Several cameras share one state χ = (ξ, Θ), and a chain is tracked like a rigid object: a 2-joint
+    arm read from a URDF, rendered by the independent ray caster (a flat colour per link over the gravel
+    photo) for two cameras, tracked by `track_sequence` with region + flow; the joints go to NAME.joints.csv.
 
-    Measured after 4 frames: root 0.77° / 2.42 mm, joints 1.52° and 2.27° (the bounds keep a margin;
-    the articulated refinements of issue 13 are not built yet)."""
-    import cv2
-    import skimage.data
+    Measured over 4 frames: root up to 2.70° / 1.57 mm, joints up to 3.05° (bounds with a margin). The same
+    arm with a photo glued to the links (the region cue's weak case, see the xfail above) drifts to 11.9°,
+    and with flat colours over the red coffee photo the joints drift to 19°."""
+    from jaxtrack.io import read_sequence, read_urdf
+    from jaxtrack.synth import ArticulatedSynthConfig, write_articulated_sequence
+    from jaxtrack.track import pose_errors, read_joint_results, track_sequence, write_tracking_results
 
-    from jaxtrack.geometry import chain_model, make_camera, se3_exp, stack_cameras
-    from jaxtrack.synth import look_at
-
-    parts = []
-    for k, (x0, x1) in enumerate(((-60.0, 50.0), (50.0, 130.0), (130.0, 200.0))):
-        sx, s = (x1 - x0) / 2, 24.0 - 4 * k
-        parts.append(np.array([[(x0 + x1) / 2 + a, b, c] for a in (-sx, sx) for b in (-s, s) for c in (-s, s)]))
-    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
-    faces = np.array([f for a, b, c, d in quads for f in ((a, b, c), (a, c, d))])
-    mesh = make_mesh(np.concatenate(parts), np.concatenate([faces + 8 * k for k in range(3)]),
-                     vertex_part=np.repeat(np.arange(3), 8), dtype=jnp.float32)
-    model = chain_model([-1, 0, 1], [(0.0, 0.0, 1.0), (0.0, 0.0, 1.0)], [(50.0, 0.0, 0.0), (130.0, 0.0, 0.0)],
-                        dtype=jnp.float32)
-    w, h, f = 160, 120, 190.0
-    K = np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1]])
-    R1, t1 = look_at([450.0, 0.0, 200.0], target=(0.0, 0.0, 650.0))
-    cams = stack_cameras([make_camera(K, w, h, dtype=jnp.float32), make_camera(K, w, h, R1, t1, dtype=jnp.float32)])
-    background = cv2.resize(skimage.data.coffee(), (w, h), interpolation=cv2.INTER_AREA).astype(np.float64)
-    poses = [np.asarray(se3_exp(jnp.asarray([-70.0 + 3 * k, 2.0 * k, 650.0, 0.3 + 0.015 * k, 0.2, 0.1 - 0.01 * k])), np.float64)
-             for k in range(5)]
-    thetas = [np.array([0.35 + 0.04 * k, -0.4 + 0.03 * k]) for k in range(5)]
-    tracker = Tracker(mesh, cams, model=model, config=TrackerConfig(cues=("region", "flow")))
-    state = tracker.start(_shaded_frames(mesh, model, cams, poses[0], thetas[0], background), poses[0], thetas[0])
-    for k in range(1, 5):
-        state, result, _ = tracker.step(state, _shaded_frames(mesh, model, cams, poses[k], thetas[k], background))
-        assert int(result.status) in (jt.Status.OK, jt.Status.UNCERTAIN), (k, jt.Status(int(result.status)).name)
-        counts = np.asarray(result.counts)
-        assert counts.shape == (2, 3) and np.all(counts[:, :2] > 0)  # region and flow rows in both cameras
-    T = np.asarray(result.T_world_root, np.float64)
-    rot = float(rotation_error_deg(T[:3, :3], poses[-1][:3, :3]))
-    trans = float(np.linalg.norm(T[:3, 3] - poses[-1][:3, 3]))
-    joints = np.abs(np.asarray(result.theta, np.float64) - thetas[-1])
-    print(f"chain after 4 frames: root {rot:.2f}° {trans:.2f} mm, joints {np.degrees(joints).round(2)}°")
-    assert rot < 2.0 and trans < 5.0 and np.all(joints < np.radians(3.5)), (rot, trans, np.degrees(joints))
+    arm = read_urdf(_arm_urdf(tmp_path / "arm.urdf"))
+    assert arm.joint_names == ("joint1", "joint2") and arm.model.num_parts == 3
+    T = np.stack([np.asarray(jt.se3_exp(jnp.asarray([3.0 * k, 2.0 * k, 0.0, 0.3 + 0.015 * k, 0.2, 0.1 - 0.01 * k])),
+                             np.float64) for k in range(5)])
+    theta = np.array([[0.35 + 0.04 * k, -0.4 + 0.03 * k] for k in range(5)])
+    cfg = ArticulatedSynthConfig(cameras=2, width=160, height=120, focal=190.0, distance=550.0, appearance="parts",
+                                 background="gravel")
+    root = write_articulated_sequence(arm, T, theta, cfg, tmp_path / "seq")
+    seq = read_sequence(root)
+    run = track_sequence(seq, cues=("region", "flow"), progress=False)
+    assert all(s in ("OK", "UNCERTAIN") for s in run.status), run.status
+    assert np.all(run.counts[1:, :, :2] > 0)  # region and flow rows in both cameras
+    write_tracking_results(run, tmp_path / "out" / "arm.csv")
+    im_ids, names, joints = read_joint_results(tmp_path / "out" / "arm.joints.csv")
+    assert names == arm.joint_names and im_ids == list(range(5))
+    rot, trans = pose_errors(run.T_cam_obj(0), seq.views[0].T_cam_obj[1])
+    err = np.degrees(np.abs(joints - theta))
+    print(f"arm after 4 frames: root {rot[-1]:.2f}° {trans[-1]:.2f} mm, joints {err[-1].round(2)}°")
+    assert rot.max() < 4.0 and trans.max() < 4.0 and err.max() < 5.0, (rot, trans, err)
 
 
 @pytest.mark.heavy
