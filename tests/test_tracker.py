@@ -1,7 +1,9 @@
 """The tracker: one compiled step over a sequence, statuses instead of exceptions, errors at the edge.
 
 One small synthetic sequence (textured box, 160x120) and one compiled configuration shared by the
-tests (module fixtures), so the suite pays the step's compilation once.
+tests (session fixtures: under xdist the tests using them share the group "small_tracker", so one
+worker builds them once even when tests of other modules run in between), so the suite pays the
+step's compilation once.
 """
 
 import equinox as eqx
@@ -16,7 +18,7 @@ from jaxtrack.render import make_mesh
 from jaxtrack.track import Tracker, TrackerConfig
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def sequence():
     from jaxtrack.synth import SynthConfig, render_sequence
 
@@ -32,12 +34,12 @@ def sequence():
     }
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def tracker(sequence):
     return Tracker(sequence["mesh"], sequence["camera"], config=TrackerConfig())
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def tracked(sequence, tracker):
     state = tracker.start(sequence["images"][0], sequence["T"][0])
     before = eqx.debug.get_num_traces(jt.track._step.track_step)
@@ -95,6 +97,7 @@ def test_object_leaving_the_image_is_a_status_not_a_crash(sequence, tracker, tra
     assert np.all(np.isfinite(np.asarray(result.T_world_root)))
 
 
+@pytest.mark.xdist_group("small_tracker")
 def test_bad_input_names_the_problem(sequence, tracker):
     images, T = sequence["images"], sequence["T"]
     with pytest.raises(ValueError, match="frames must have shape"):
