@@ -769,5 +769,12 @@ def compute_flow(
     check_flow_inputs(img1, img2, data_weight, region, init_flow, where="compute_flow")
     check_flow_params(params, where="compute_flow")
     beta = default_beta(params) if beta is None else beta
-    res = _compute_flow_jit(img1, img2, params, config, data_weight, region, init_flow, jnp.asarray(beta, dtype), dtype)
+    # Defaults materialised and frames cast here, at the edge: calls with and without r(x), Ω1 or a start
+    # flow, and frames of any input dtype, then share one compiled program per frame shape (a zero start
+    # flow is the solver's own start). The test suite compiled this solver once per combination.
+    shape = tuple(jnp.shape(img1)[:2])
+    r, om = weight_and_region(shape, data_weight, region, dtype)
+    init = jnp.zeros(shape + (2,), dtype) if init_flow is None else jnp.asarray(init_flow, dtype)
+    res = _compute_flow_jit(jnp.asarray(img1, dtype), jnp.asarray(img2, dtype), params, config, r, om, init,
+                            jnp.asarray(beta, dtype), dtype)
     return checked_result(res, throw, "compute_flow")
