@@ -28,7 +28,7 @@ def _problem(model, seed=3, num_points=40):
     corr = make_correspondences(
         scene.cameras, scene.pixel, scene.p_model, camera_index=scene.camera_index, part=scene.part
     )
-    normals, offsets = line_planes(corr.n, corr.m)
+    normals, offsets, _ = line_planes(corr.n, corr.m)
     return scene, corr, normals, offsets
 
 

@@ -78,7 +78,7 @@ def test_noise_within_derived_bound(model_name):
         T_cw = np.asarray(scene.cameras.T_cam_world)[scene.camera_index]
         depth = np.einsum("nj,nj->n", T_cw[:, 2, :3], p_world) + T_cw[:, 2, 3]
         sigma_mm = sigma_px * depth / focal
-        normals, offsets = line_planes(corr.n, corr.m)
+        normals, offsets, _ = line_planes(corr.n, corr.m)
         args = (model, jnp.asarray(scene.T_world_root), jnp.asarray(scene.theta), corr.p_model, corr.part, normals, offsets)
         H, _, _ = plane_normal_equations(*args, jnp.ones(len(depth)))
         S, _, _ = plane_normal_equations(*args, jnp.asarray(sigma_mm**2))

@@ -4,6 +4,15 @@ Each row ties an observed pixel of camera c (as the Plücker line of its viewing
 eq. 3) to a model point X on part p (model frame, zero configuration) with a weight w ≥ 0. Sets have
 a fixed capacity; unused rows carry w = 0, so any number of matches up to the capacity shares one
 compiled solver (DESIGN.md, static shapes).
+
+Edge rows. A contour match (eq. 14) says where the silhouette edge lies across the edge, not where
+along it the model point goes: its displacement is along the contour normal by construction. A point
+row (the paper's |X × n − m|², eq. 4) nevertheless pins the point along the edge too, which holds
+back every motion with a component along the contour (ICP's point-to-point slowness: measured, the
+pose moved less than half the way per refinement round and the residual to the targets did not
+drop). An edge row carries the unit normal of the plane through the viewing ray and the image edge
+(world frame): its residual across the edge has weight 1 and the one along the edge `tangent_weight`
+(0: point-to-plane; 1: exactly the point row).
 """
 
 from __future__ import annotations
@@ -39,6 +48,11 @@ class Correspondences(eqx.Module):
         pixel: (N, 2) the ideal (undistorted) pixel, kept for drawing and reprojection errors.
         weight: (N,) ≥ 0, zero for padding.
         cue: (N,) int32 `Cue` that produced the row (for counts, plots and per-cue weights only).
+        normal: (N, 3) world-frame unit normal of the plane through the viewing ray and the observed
+            image edge (⊥ n) for an edge row; zero for a point row.
+        tangent_weight: (N,) factor on the squared residual along the edge (1 for point rows).
+
+    `normal` and `tangent_weight` default to point rows (zeros and ones).
     """
 
     n: jax.Array
@@ -49,6 +63,15 @@ class Correspondences(eqx.Module):
     pixel: jax.Array
     weight: jax.Array
     cue: jax.Array
+    normal: jax.Array | None = None
+    tangent_weight: jax.Array | None = None
+
+    def __post_init__(self):
+        # Point rows unless told otherwise: sets built by hand need not know about edge rows.
+        if self.normal is None:
+            self.normal = jnp.zeros(jnp.shape(self.n), jnp.result_type(self.n))
+        if self.tangent_weight is None:
+            self.tangent_weight = jnp.ones(jnp.shape(self.weight), jnp.result_type(self.n))
 
     @property
     def capacity(self) -> int:
@@ -69,7 +92,8 @@ class Correspondences(eqx.Module):
 
 @eqx.filter_jit
 def correspondences_from_pixels(
-    cameras: Camera, pixel, camera_index, p_model, part, weight, undistort: bool = True, cue=Cue.UNKNOWN
+    cameras: Camera, pixel, camera_index, p_model, part, weight, undistort: bool = True, cue=Cue.UNKNOWN,
+    edge_normal=None, tangent_weight=None,
 ):
     """Jittable builder: pixels (+ camera per row) and model points to a correspondence set.
 
@@ -81,22 +105,41 @@ def correspondences_from_pixels(
         camera_index: (N,) int camera of each pixel (ignored for a single camera).
         p_model: (N, 3) model-frame points; part: (N,) int; weight: (N,).
         cue: `Cue` of every row (scalar) or (N,) per row.
+        edge_normal: optional (N, 2) image direction across the edge each pixel lies on (any length;
+            zero rows stay point rows): the rows become edge rows (see the module docstring).
+        tangent_weight: optional scalar or (N,) weight of the residual along the edge (default 1).
     """
     cam_rows = select_camera(cameras, camera_index) if cameras.K.ndim == 3 else cameras
     pixel = jnp.asarray(pixel)
-    if undistort:
-        pixel = undistort_points(cam_rows, pixel)
-    origin, direction = pixel_rays_world(cam_rows, pixel)
+    ideal = undistort_points(cam_rows, pixel) if undistort else pixel
+    origin, direction = pixel_rays_world(cam_rows, ideal)
     n, m = plucker_from_ray(origin, direction)
+    if edge_normal is None:
+        normal = jnp.zeros_like(n)
+    else:
+        # The plane through the camera centre, the ray of the pixel and the ray of a point one pixel
+        # along the edge (the edge is perpendicular to edge_normal).
+        e = jnp.asarray(edge_normal, pixel.dtype)
+        length = jnp.linalg.norm(e, axis=-1, keepdims=True)
+        along = jnp.stack([-e[..., 1], e[..., 0]], -1) / jnp.where(length > 0, length, 1.0)
+        other = undistort_points(cam_rows, pixel + along) if undistort else pixel + along
+        _, direction2 = pixel_rays_world(cam_rows, other)
+        t = jnp.cross(direction, direction2)
+        t_norm = jnp.linalg.norm(t, axis=-1, keepdims=True)
+        normal = jnp.where((length > 0) & (t_norm > 0), t / jnp.where(t_norm > 0, t_norm, 1.0), 0.0)
+    tw = jnp.ones(jnp.shape(weight), n.dtype) if tangent_weight is None else jnp.broadcast_to(
+        jnp.asarray(tangent_weight, n.dtype), jnp.shape(weight))
     return Correspondences(
         n=n,
         m=m,
         p_model=jnp.asarray(p_model, n.dtype),
         part=jnp.asarray(part, jnp.int32),
         camera=jnp.asarray(camera_index, jnp.int32),
-        pixel=pixel,
+        pixel=ideal,
         weight=jnp.asarray(weight, n.dtype),
         cue=jnp.broadcast_to(jnp.asarray(cue, jnp.int32), jnp.shape(weight)),
+        normal=normal.astype(n.dtype),
+        tangent_weight=tw,
     )
 
 

@@ -25,28 +25,39 @@ import jax.numpy as jnp
 from ..geometry import KinematicModel, part_transforms, se3_adjoint, transform_point_columns
 
 
-def line_planes(n: jax.Array, m: jax.Array):
-    """Two orthonormal planes through each Plücker line (n unit, m moment).
+def line_planes(n: jax.Array, m: jax.Array, normal: jax.Array | None = None, tangent_weight: jax.Array | None = None):
+    """Two orthonormal planes through each Plücker line (n unit, m moment), and their weights.
 
     Args:
         n: (N, 3) unit directions; zero for padding rows.
         m: (N, 3) moments.
+        normal: optional (N, 3) unit normals ⊥ n of edge rows' planes (zero for point rows): an edge
+            row's first plane is that plane, its second the plane along the edge.
+        tangent_weight: optional (N,) weight of an edge row's second plane (ignored for point rows).
 
     Returns:
-        normals (N, 2, 3) with b1, b2 ⊥ n, and offsets (N, 2) d_k = b_k · p0.
+        normals (N, 2, 3) with b1, b2 ⊥ n, offsets (N, 2) d_k = b_k · p0, and plane weights (N, 2)
+        (1, 1 for a point row: the sum is exactly |a × n − m|²; 1, tangent_weight for an edge row).
     """
     # The helper axis least aligned with n keeps the cross product well conditioned.
     helper = jnp.where(
         (jnp.abs(n[..., 0]) < 0.9)[..., None], jnp.array([1.0, 0.0, 0.0], n.dtype), jnp.array([0.0, 1.0, 0.0], n.dtype)
     )
     b1 = jnp.cross(n, helper)
+    if normal is not None:
+        edge = jnp.sum(normal * normal, axis=-1, keepdims=True) > 0
+        b1 = jnp.where(edge, normal - jnp.sum(normal * n, -1, keepdims=True) * n, b1)
     norm = jnp.linalg.norm(b1, axis=-1, keepdims=True)
     # Zeroed padding rows have n = 0; they get zero planes instead of 0/0.
     b1 = b1 / jnp.where(norm > 0, norm, 1.0)
     b2 = jnp.cross(n, b1)
     p0 = jnp.cross(n, m)
     normals = jnp.stack([b1, b2], axis=-2)
-    return normals, jnp.sum(normals * p0[..., None, :], axis=-1)
+    plane_weight = jnp.ones(n.shape[:-1] + (2,), n.dtype)
+    if normal is not None:
+        second = jnp.where(edge[..., 0], jnp.ones_like(n[..., 0]) if tangent_weight is None else tangent_weight, 1.0)
+        plane_weight = plane_weight.at[..., 1].set(second)
+    return normals, jnp.sum(normals * p0[..., None, :], axis=-1), plane_weight
 
 
 def _world_point_columns(model: KinematicModel, T_parts: jax.Array, p_model: jax.Array, part: jax.Array):
@@ -136,11 +147,13 @@ def plane_normal_equations(
     in experiments/bench_pose.py); its size does not depend on J. The joint blocks are contractions
     of the stacked (J, 2N) joint columns, one einsum each whatever J is.
 
+    `weight` is (N,) per correspondence or (N, 2) per plane (`line_planes`' plane weights times it).
+
     Returns:
         H = Σ w JᵀJ (D, D), g = Σ w Jᵀ s (D,), cost = Σ w |s|² (= Σ w |r|² of eq. 4), D = 6 + J.
     """
     s, root_columns, joint_columns = _residuals_and_columns(model, T_world_root, theta, p_model, part, normals, offsets)
-    w = weight[:, None]
+    w = weight[:, None] if weight.ndim == 1 else weight
     weighted_root = [w * c for c in root_columns]
     upper = {(d, e): jnp.sum(weighted_root[d] * root_columns[e]) for d in range(6) for e in range(d, 6)}
     H = jnp.stack([jnp.stack([upper[min(d, e), max(d, e)] for e in range(6)]) for d in range(6)])

@@ -154,7 +154,7 @@ class PoseProblem(eqx.Module):
         model: kinematic tree.
         corr: correspondences with the geometry of zero-weight rows zeroed (`_sanitize`).
         T_init: (4, 4) the chart's origin: T_world_root = exp(δ̂) T_init.
-        sqrt_weight: (N,) √w, zero for padding.
+        sqrt_weight: (N, 2) √w per plane (the row's weight times its plane weight), zero for padding.
         normals, offsets: (N, 2, 3), (N, 2) the two planes through each line (`line_planes`).
     """
 
@@ -171,7 +171,7 @@ def _weighted_residual(y: jax.Array, problem: PoseProblem) -> jax.Array:
     T_root = se3_exp(y[:6]) @ problem.T_init
     corr = problem.corr
     s = plane_residuals(problem.model, T_root, y[6:], corr.p_model, corr.part, problem.normals, problem.offsets)
-    return s * problem.sqrt_weight[:, None]
+    return s * problem.sqrt_weight
 
 
 def _gauss_newton_iterate(y0: jax.Array, problem: PoseProblem, config: SolverConfig):
@@ -209,7 +209,9 @@ def _sanitize(corr: Correspondences) -> Correspondences:
     """Zero the geometry of rows that carry no weight so that padding can never poison the sums."""
     live = corr.weight > 0
     clean = lambda a: jnp.where(live[:, None], jnp.nan_to_num(a), 0.0)
-    return eqx.tree_at(lambda c: (c.n, c.m, c.p_model), corr, (clean(corr.n), clean(corr.m), clean(corr.p_model)))
+    tw = jnp.where(live & jnp.isfinite(corr.tangent_weight), jnp.clip(corr.tangent_weight, 0.0, None), 0.0)
+    return eqx.tree_at(lambda c: (c.n, c.m, c.p_model, c.normal, c.tangent_weight), corr,
+                       (clean(corr.n), clean(corr.m), clean(corr.p_model), clean(corr.normal), tw))
 
 
 def _rigid_transform_defect(T: jax.Array) -> jax.Array:
@@ -283,7 +285,9 @@ def input_status(
         theta_safe = jnp.where(jnp.isfinite(theta_init), theta_init, 0.0)
         clean = _sanitize(corr)
         invalid = invalid | bad_camera | (fraction_behind_cameras(model, clean, T_safe, theta_safe, cameras) > 0.5)
-    too_few = 2 * jnp.sum(live) < model.num_dof
+    # An edge row with no weight along the edge constrains one direction, not two.
+    planes = jnp.where(jnp.any(corr.normal != 0, axis=-1) & ~(corr.tangent_weight > 0), 1, 2)
+    too_few = jnp.sum(jnp.where(live, planes, 0)) < model.num_dof
     return first_failure(status_where(invalid, Status.INVALID_INPUT, Status.OK), status_where(too_few, Status.TOO_FEW, Status.OK))
 
 
@@ -327,7 +331,8 @@ def solve_pose(
     T_init_safe = jnp.where(jnp.isfinite(T_init), T_init, jnp.eye(4, dtype=dtype))
     theta_safe = jnp.where(jnp.isfinite(theta_init), theta_init, 0.0)
     y0 = jnp.concatenate([jnp.zeros((6,), dtype), theta_safe])
-    normals, offsets = line_planes(clean.n, clean.m)
+    normals, offsets, plane_weight = line_planes(clean.n, clean.m, clean.normal, clean.tangent_weight)
+    weight = weight[:, None] * plane_weight
     problem = PoseProblem(
         model=model, corr=clean, T_init=T_init_safe, sqrt_weight=_safe_sqrt(weight), normals=normals, offsets=offsets
     )
