@@ -101,9 +101,10 @@ def main():
     from jaxtrack.cues.levelset._refine import contour_matches
 
     cm = jax.jit(lambda p: contour_matches(phi0, p, sil, out.p_model, out.part_id, params, config.capacity))
-    _, target, pm, part, wgt = cm(phi)
+    _, target, pm, part, wgt, edge_normal = cm(phi)
     corr = correspondences_from_pixels(cam, target + jnp.asarray([x0, y0], jnp.float32), jnp.zeros_like(part), pm, part, wgt,
-                                       undistort=False, cue=Cue.REGION)
+                                       undistort=False, cue=Cue.REGION, edge_normal=edge_normal if config.edge_rows else None,
+                                       tangent_weight=params.tangent_weight)
     solve = jax.jit(lambda c: solve_pose(model, c, T0j, None, SolverConfig(max_steps=config.solver_steps)))
     rows = [
         ("render into the crop", timed(lambda: rend(T0j).depth)),

@@ -194,12 +194,14 @@ def stage_breakdown(tracker, state, frames_np, repeats: int) -> dict:
         match = eqx.filter_jit(lambda a, b, r: jax.vmap(
             lambda p0, p, s, pm, pa: contour_matches(p0, p, s, pm, pa, rp, rc.capacity, rc.matching))(a, b, r.face_id >= 0, r.p_model, r.part_id))
         out["ms"]["shape matching"] = _median_ms(lambda: match(phi0, phi, ren)[4], repeats)
-        _, target, p_model, part, weight = match(phi0, phi, ren)
+        _, target, p_model, part, weight, edge_normal = match(phi0, phi, ren)
         C = offsets.shape[0]
         cam_index = jnp.broadcast_to(jnp.arange(C, dtype=jnp.int32)[:, None], weight.shape)
         target = target + offsets[:, None, ::-1].astype(dtype)
         corr = correspondences_from_pixels(tracker.cameras, target.reshape(-1, 2), cam_index.reshape(-1), p_model.reshape(-1, 3),
-                                           part.reshape(-1), weight.reshape(-1), undistort=False, cue=Cue.REGION)
+                                           part.reshape(-1), weight.reshape(-1), undistort=False, cue=Cue.REGION,
+                                           edge_normal=edge_normal.reshape(-1, 2) if rc.edge_rows else None,
+                                           tangent_weight=rp.tangent_weight)
         if motion is not None:
             corr = fuse_cue_weights(concatenate_correspondences(corr, motion), CueWeights())
         solve = eqx.filter_jit(lambda c: solve_pose(model, c, T_new, theta_new, SolverConfig(max_steps=rc.solver_steps)).T_world_root)

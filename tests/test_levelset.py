@@ -15,6 +15,7 @@ from jaxtrack.cues.levelset import (
     RegionConfig,
     RegionRefiner,
     closest_point_matches,
+    closest_point_matches_at,
     contour_pixels,
     data_term,
     evolve,
@@ -193,6 +194,33 @@ def test_closest_point_matches_circle():
     # operator; before, 162 of 263 contour pixels of a box silhouette got non-zero matches).
     same = np.asarray(closest_point_matches(jnp.asarray(phi0), jnp.asarray(phi0)))[ys, xs]
     assert np.max(np.abs(same)) == 0.0
+
+
+def test_sparse_closest_points_against_brute_force():
+    """The refinement's sparse matcher (Newton projection at the contour pixels only) against a
+    brute-force nearest point on a densely sampled circle, Φ the circle's exact signed distance."""
+    h, w = 64, 64
+    phi0 = _disc_sdf(h, w, 30.2, 31.6, 14.0)
+    c1, r1 = np.array([33.0, 30.1]), 15.5
+    phi = _disc_sdf(h, w, c1[0], c1[1], r1)
+    ys, xs = np.nonzero(np.asarray(contour_pixels(jnp.asarray(phi0))) & (phi0 > 0))
+    pixels = jnp.asarray(np.stack([xs, ys], -1), jnp.float64)
+    d, ok, normal = (np.asarray(a) for a in closest_point_matches_at(jnp.asarray(phi0), jnp.asarray(phi), pixels))
+    c0 = np.array([30.2, 31.6])
+    src = np.stack([xs, ys], -1).astype(float)
+    src = c0 + 14.0 * (src - c0) / np.linalg.norm(src - c0, axis=1, keepdims=True)
+    t = np.linspace(0, 2 * np.pi, 20000, endpoint=False)
+    circle = c1 + r1 * np.stack([np.cos(t), np.sin(t)], -1)
+    nearest = circle[np.argmin(np.linalg.norm(src[:, None] - circle[None], axis=-1), axis=1)]
+    err = np.linalg.norm(src + d - nearest, axis=1)
+    assert ok.all(), ok.mean()
+    assert np.median(err) < 0.02 and np.max(err) < 0.1, (np.median(err), np.max(err))
+    # The normal is ∇Φ/|∇Φ| at the match: Φ > 0 inside, so the circle's inward radial direction.
+    radial = (nearest - c1) / r1
+    assert np.min(np.sum(normal * -radial, 1)) > 0.99
+    # Identical contours: exactly zero.
+    same, ok_same, _ = closest_point_matches_at(jnp.asarray(phi0), jnp.asarray(phi0), pixels)
+    assert np.max(np.abs(np.asarray(same))) == 0.0 and np.asarray(ok_same).all()
 
 
 def test_regularised_matches_ignore_spike():

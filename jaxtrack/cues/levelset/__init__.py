@@ -21,6 +21,7 @@ from ._host import RegionRefiner as RegionRefiner
 from ._host import projected_boxes as projected_boxes
 from ._host import region_crop as region_crop
 from ._matching import closest_point_matches as closest_point_matches
+from ._matching import closest_point_matches_at as closest_point_matches_at
 from ._matching import regularised_matches as regularised_matches
 from ._matching import zero_level_points as zero_level_points
 from ._redistance import band_sdf as band_sdf

@@ -52,9 +52,13 @@ class RegionParams(eqx.Module):
             true pose of a flat box, one round jumped 19 mm in depth).
         max_match: matches longer than this (px) are treated as outliers: zero weight.
         alpha_match: α of the regularised shape matching (eq. 15; paper: 10).
-        settle_rotation: the pose has settled when a round rotates it less than this (rad; also
-            per joint angle) ...
-        settle_translation: ... and translates it less than this (mm).
+        settle_motion: the pose has settled when a round moves the matched contour's model points
+            less than this on average (mm). Points, not the twist: a rotation of 7e-4 rad about the
+            camera's origin reads as 0.4 mm in the twist's translation yet moves the object's points
+            0.03 mm, which is the round-to-round jitter at the true pose (sub-pixel matches).
+        tangent_weight: weight of a contour match's residual along the contour, relative to the one across
+            it, when `RegionConfig.edge_rows` is on (1 = the paper's point rows; small values keep a weak
+            hold on motions the silhouette does not see, such as a symmetric body's spin).
     """
 
     lam: jax.Array
@@ -70,8 +74,8 @@ class RegionParams(eqx.Module):
     min_match: jax.Array
     max_match: jax.Array
     alpha_match: jax.Array
-    settle_rotation: jax.Array
-    settle_translation: jax.Array
+    settle_motion: jax.Array
+    tangent_weight: jax.Array
 
 
 def region_params(crop_shape: tuple[int, int] = (256, 256), dtype=jnp.float32, **overrides) -> RegionParams:
@@ -97,8 +101,8 @@ def region_params(crop_shape: tuple[int, int] = (256, 256), dtype=jnp.float32, *
         "min_match": 0.0,
         "max_match": 15.0,
         "alpha_match": 10.0,
-        "settle_rotation": 5e-4,
-        "settle_translation": 0.05,
+        "settle_motion": 0.05,
+        "tangent_weight": 0.1,
     }
     for name, value in overrides.items():
         if name not in values:

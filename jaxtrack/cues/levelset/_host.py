@@ -19,7 +19,17 @@ from ...geometry import (
 from ...render import Mesh, RasterPlan, face_extents, merge_plans, plan_raster
 from ..flow import ROI_SIZES
 from ._energy import RegionParams, region_params
-from ._refine import RegionConfig, RegionProblem, RegionResult, RegionState, _refine_jit, initial_state
+from ._refine import (
+    RegionConfig,
+    RegionProblem,
+    RegionResult,
+    RegionState,
+    _refine_jit,
+    densities_at_pose,
+    initial_state,
+)
+
+_densities_at_pose_jit = eqx.filter_jit(densities_at_pose)
 
 
 def _as_rig(cameras: Camera) -> Camera:
@@ -152,23 +162,19 @@ class RegionRefiner:
             raise ValueError("images contain non-finite values")
         return images
 
-    def __call__(self, images, T_init, theta_init=None, params: RegionParams | None = None) -> tuple[RegionResult, tuple]:
-        """Refine the pose on one frame. Returns (`RegionResult`, (offsets (C, 2), crop_shape)).
-
-        Raises:
-            ValueError: malformed images or pose, or an object behind a camera.
-        """
+    def _prepare(self, images, T, theta_init, params, name: str):
+        """Checked inputs, the crop around the projected model and the parameters for its size class."""
         images = self.check_images(images)
         dtype = self.cameras.K.dtype
-        T_init = np.asarray(T_init, np.float64)
-        if T_init.shape != (4, 4) or not np.all(np.isfinite(T_init)):
-            raise ValueError(f"T_init must be a finite (4, 4) pose, got shape {T_init.shape}")
+        T = np.asarray(T, np.float64)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise ValueError(f"{name} must be a finite (4, 4) pose, got shape {T.shape}")
         J = self.model.num_joints
         theta = np.zeros(J) if theta_init is None else np.asarray(theta_init, np.float64)
         if theta.shape != (J,) or not np.all(np.isfinite(theta)):
-            raise ValueError(f"theta_init must be ({J},) finite joint angles, got shape {theta.shape}")
+            raise ValueError(f"theta must be ({J},) finite joint angles, got shape {theta.shape}")
         f = self.config.density_factor
-        T_j, th_j = jnp.asarray(T_init, dtype), jnp.asarray(theta, dtype)
+        T_j, th_j = jnp.asarray(T, dtype), jnp.asarray(theta, dtype)
         offsets, crop_shape = region_crop(
             projected_boxes(self.mesh, self.cameras, T_j, th_j, self.model), (self.cameras.height, self.cameras.width), self.margin, f
         )
@@ -179,9 +185,30 @@ class RegionRefiner:
             channels = (1 if images.ndim == 3 else images.shape[-1]) + int(self.config.texture)
             self.state = initial_state(self.num_cameras, self.cameras.height, self.cameras.width, channels, f, dtype)
         crops = np.stack([images[c, y0 : y0 + crop_shape[0], x0 : x0 + crop_shape[1]] for c, (y0, x0) in enumerate(offsets)])
+        return T_j, th_j, offsets, crop_shape, params, jnp.asarray(crops, dtype)
+
+    def learn(self, images, T_world_root, theta=None, params: RegionParams | None = None) -> None:
+        """Learn the local densities of both regions at a known pose (`densities_at_pose`), as a tracker does
+        on its first frame: the next call's first level-set iterations use them ("the first iterations of
+        a new frame use the previous frame's densities", Section IV).
+
+        Raises:
+            ValueError: malformed images or pose, or an object behind a camera.
+        """
+        T_j, th_j, offsets, _, params, crops = self._prepare(images, T_world_root, theta, params, "T_world_root")
+        problem = RegionProblem(self.mesh, self.model, self.cameras, self.plan, self.config)
+        self.state = _densities_at_pose_jit(problem, crops, jnp.asarray(offsets), self.state, params, T_j, th_j)
+
+    def __call__(self, images, T_init, theta_init=None, params: RegionParams | None = None) -> tuple[RegionResult, tuple]:
+        """Refine the pose on one frame. Returns (`RegionResult`, (offsets (C, 2), crop_shape)).
+
+        Raises:
+            ValueError: malformed images or pose, or an object behind a camera.
+        """
+        T_j, th_j, offsets, crop_shape, params, crops = self._prepare(images, T_init, theta_init, params, "T_init")
         for _ in range(3):
             problem = RegionProblem(self.mesh, self.model, self.cameras, self.plan, self.config)
-            result = _refine_jit(problem, jnp.asarray(crops, dtype), jnp.asarray(offsets), self.state, params, T_j, th_j)
+            result = _refine_jit(problem, crops, jnp.asarray(offsets), self.state, params, T_j, th_j)
             if int(result.status) != 7:  # Status.RENDER_OVERFLOW: re-plan from the final pose and redo
                 break
             self._replan(result.T_world_root, result.theta)

@@ -80,6 +80,45 @@ def closest_point_matches(phi0, phi):
     return jnp.where(jnp.any(seeds), target - source, 0.0)
 
 
+def closest_point_matches_at(phi0, phi, pixels, steps: int = 3, band: float = BAND):
+    """Closest-point matches (eq. 14) at N given pixels only: the sparse form the refinement uses.
+
+    Φ is a signed distance function within ±`band` (re-distanced after the last level-set step), so
+    the closest point of its zero level to a point p is p − Φ(p) ∇Φ/|∇Φ|²: `steps` such Newton
+    steps with bilinear Φ, ∇Φ, started, like the source on Φ0, from the pixel moved onto Φ0's zero
+    level (one operator on both sides: identical contours give exactly zero). No dense distance
+    transform is needed, so the cost is O(N) instead of a jump flooding over the crop (measured
+    8.6 ms per round at 176x256 for the dense `closest_point_matches`).
+
+    Args:
+        phi0: (H, W) Φ0; phi: (H, W) the segmentation, a signed distance function in the band.
+        pixels: (N, 2) integer (x, y) positions, normally Φ0's contour pixels.
+
+    Returns:
+        (d (N, 2) match vectors (dx, dy), ok (N,) bool: the projection landed on Φ's zero level
+        (|Φ| < 0.25 px there) from inside the band; elsewhere Φ is clipped and says nothing;
+        normal (N, 2) the unit normal ∇Φ/|∇Φ| of Φ's zero level at the matched point, zero where not ok).
+    """
+    ix, iy = pixels[:, 0].astype(jnp.int32), pixels[:, 1].astype(jnp.int32)
+    gx, gy = _central_gradient(phi0)
+    g = jnp.stack([gx[iy, ix], gy[iy, ix]], -1)
+    norm = jnp.sqrt(jnp.sum(g**2, -1))
+    safe = jnp.where(norm > 1e-6, norm, 1.0)
+    step = jnp.where(norm > 1e-6, phi0[iy, ix] / safe, 0.0)
+    start = pixels.astype(phi.dtype) - (step / safe)[:, None] * g
+    source = _project(phi0, start, steps)
+    target = _project(phi, start, steps)
+    at_start, _ = sample_bilinear(phi[..., None], start[:, 0], start[:, 1])
+    gx1, gy1 = _central_gradient(phi)
+    at_target, _ = sample_bilinear(jnp.stack([phi, gx1, gy1], -1), target[:, 0], target[:, 1])
+    grad = at_target[:, 1:]
+    grad_norm = jnp.sqrt(jnp.sum(grad**2, -1))
+    ok = ((jnp.abs(at_start[:, 0]) < band - 1.0) & (jnp.abs(at_target[:, 0]) < 0.25) & (grad_norm > 1e-3)
+          & jnp.any(phi > 0) & jnp.any(phi < 0))
+    normal = jnp.where(ok[:, None], grad / jnp.where(grad_norm > 1e-3, grad_norm, 1.0)[:, None], 0.0)
+    return jnp.where(ok[:, None], target - source, 0.0), ok, normal
+
+
 def regularised_matches(phi0, phi, alpha, warps: int = 5, sweeps: int = 60, band: float = 12.0):
     """Smooth match field w (H, W, 2) with Φ(x + w) ≈ Φ0(x), α-regularised (eq. 15). Jittable.
 

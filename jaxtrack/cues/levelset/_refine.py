@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 
 from ..._status import Status, first_failure, status_where
-from ...geometry import Camera, KinematicModel, se3_inverse, se3_log
+from ...geometry import Camera, KinematicModel, part_transforms
 from ...image import crop_window, paste_window
 from ...render import Mesh, RasterPlan, render
 from ...solve import (
@@ -36,7 +36,7 @@ from ...solve import (
 from ._densities import LocalDensities, check_grid, data_term, local_densities
 from ._energy import RegionParams, evolve, region_memberships
 from ._features import feature_channels
-from ._matching import closest_point_matches, regularised_matches
+from ._matching import closest_point_matches_at, regularised_matches
 from ._redistance import band_sdf, contour_pixels
 
 
@@ -52,6 +52,17 @@ class RegionConfig(eqx.Module):
         capacity: contour correspondences per camera.
         matching: "closest" (eq. 14) or "regularised" (eq. 15).
         texture: add the texture channel to the colour channels.
+        warm_start: with densities carried from the previous frame, each round's level set starts from
+            the previous round's Φ (the first round from Φ0) instead of from Φ0: the segmentation keeps
+            evolving while the pose moves, as in the paper's alternation, and reaches the data's boundary
+            instead of the first iterations' compromise. Without carried densities every round starts
+            from Φ0 (a warm start on densities from an unrefined Φ0 held a 2-joint chain 0.06 rad off).
+        fixed_densities: with densities carried from the previous frame, they serve every round; the last
+            round's segmentation gives the densities carried to the next frame. Re-estimating them from
+            each round's own segmentation lets an error feed itself. Without carried densities they are
+            re-estimated every round (the first from Φ0).
+        edge_rows: contour matches become edge rows of the solver (weight 1 across the contour,
+            `RegionParams.tangent_weight` along it) instead of point rows (see `jaxtrack.solve`).
     """
 
     levelset_iterations: int = eqx.field(static=True, default=10)
@@ -62,6 +73,9 @@ class RegionConfig(eqx.Module):
     capacity: int = eqx.field(static=True, default=512)
     matching: str = eqx.field(static=True, default="closest")
     texture: bool = eqx.field(static=True, default=False)
+    warm_start: bool = eqx.field(static=True, default=True)
+    fixed_densities: bool = eqx.field(static=True, default=True)
+    edge_rows: bool = eqx.field(static=True, default=True)
 
     def __check_init__(self):
         if self.matching not in ("closest", "regularised"):
@@ -165,22 +179,27 @@ def contour_matches(phi0, phi, silhouette, p_model_img, part_img, params: Region
         (pixel (capacity, 2) x, y of the contour point where its model point projects, target
         (capacity, 2) the matched point on Φ's zero level, p_model (capacity, 3), part (capacity,),
         weight (capacity,): 1 for a usable match, 0 for padding, outliers and matches shorter than
-        min_match (default 0: zero-length matches keep their weight and anchor the pose)).
+        min_match (default 0: zero-length matches keep their weight and anchor the pose),
+        normal (capacity, 2): the unit normal of the matched contour (the direction the match
+        measures; the solver's edge rows use it)).
     """
-    if matching == "closest":
-        d = closest_point_matches(phi0, phi)
-    else:
-        d = regularised_matches(phi0, phi, params.alpha_match)
     w = phi.shape[1]
     idx = _select_slots(silhouette_contour(silhouette), capacity)
     valid = idx >= 0
     safe = jnp.where(valid, idx, 0)
     pixel = jnp.stack([safe % w, safe // w], -1).astype(phi.dtype)
-    dvec = d.reshape(-1, 2)[safe]
+    if matching == "closest":
+        dvec, found, normal = closest_point_matches_at(phi0, phi, pixel)
+        valid = valid & found
+    else:
+        dvec = regularised_matches(phi0, phi, params.alpha_match).reshape(-1, 2)[safe]
+        gx, gy = jnp.gradient(phi0)[::-1]
+        g = jnp.stack([gx.reshape(-1)[safe], gy.reshape(-1)[safe]], -1)
+        normal = g / jnp.maximum(jnp.linalg.norm(g, axis=-1, keepdims=True), 1e-6)
     length = jnp.sqrt(jnp.sum(dvec**2, -1))
     usable = valid & (length >= params.min_match) & (length <= params.max_match) & jnp.all(jnp.isfinite(dvec), -1)
     weight = usable.astype(phi.dtype)
-    return pixel, pixel + dvec, p_model_img.reshape(-1, 3)[safe], part_img.reshape(-1)[safe], weight
+    return pixel, pixel + dvec, p_model_img.reshape(-1, 3)[safe], part_img.reshape(-1)[safe], weight, normal
 
 
 def _densities(features, phi, band, params: RegionParams, factor: int) -> LocalDensities:
@@ -210,6 +229,18 @@ def segment(features, phi0, phi_init, densities: LocalDensities, params: RegionP
     phi = evolve(phi_init, phi0, force, params, config.levelset_iterations, config.redistance_every)
     new = _densities(features, phi, params.density_band, params, f)
     return phi, new
+
+
+def _mean_motion(model: KinematicModel, corr: Correspondences, T_old, theta_old, T_new, theta_new):
+    """Mean distance (mm) the weighted rows' model points move from χ_old to χ_new (∞ without rows)."""
+    def world(T, theta):
+        A = part_transforms(model, T, theta)[corr.part]
+        return jnp.einsum("nij,nj->ni", A[:, :3, :3], corr.p_model) + A[:, :3, 3]
+
+    live = corr.weight > 0
+    d = jnp.linalg.norm(world(T_new, theta_new) - world(T_old, theta_old), axis=-1)
+    n = jnp.sum(live)
+    return jnp.where(n > 0, jnp.sum(jnp.where(live, d, 0.0)) / jnp.maximum(n, 1), jnp.inf)
 
 
 class RegionProblem(eqx.Module):
@@ -265,36 +296,37 @@ def refine_pose_region(
     solver = SolverConfig(max_steps=config.solver_steps)
     num_cams = offsets.shape[0]
 
-    def per_camera(cam, feats, phi_prev, dens, has_dens, first, T, theta):
+    def per_camera(cam, feats, phi_prev, dens, has_dens, carried_in, first, T, theta):
         out = render(mesh, cam, T, theta, model, problem.plan)
         sil = out.face_id >= 0
         phi0 = band_sdf(sil).astype(dtype)
         own = _densities(feats, phi0, params.density_band, params, f)
         dens = jax.tree.map(lambda a, b: jnp.where(has_dens, a, b), dens, own)
-        phi, new_dens = segment(feats, phi0, phi0, dens, params, config)
+        # Warm start and fixed densities only with densities from the previous frame: without them the
+        # first round's densities come from Φ0 at the unrefined pose, and keeping them (or a segmentation
+        # made with them) holds the pose where it started (a 2-joint chain stayed 0.06 rad off).
+        start = jnp.where(first | ~carried_in, phi0, phi_prev) if config.warm_start else phi0
+        phi, new_dens = segment(feats, phi0, start, dens, params, config)
         matches = contour_matches(phi0, phi, sil, out.p_model, out.part_id, params, config.capacity, config.matching)
-        return phi0, phi, new_dens, matches, out.overflow, jnp.any(sil)
+        dens_next = jax.tree.map(lambda a, b: jnp.where(carried_in, a, b), dens, new_dens) if config.fixed_densities else new_dens
+        return phi0, phi, (dens_next, new_dens), matches, out.overflow, jnp.any(sil)
 
     def round_(carry):
         T, theta, phi, dens, has_dens, it = carry[:6]
-        phi0, phi, dens, (_, _target, p_model, part, weight), overflow, visible = jax.vmap(
-            per_camera, in_axes=(0, 0, 0, 0, 0, None, None, None)
-        )(cams, features, phi, dens, has_dens, it == 0, T, theta)
+        phi0, phi, (dens_next, dens_out), (_, _target, p_model, part, weight, edge_normal), overflow, visible = jax.vmap(
+            per_camera, in_axes=(0, 0, 0, 0, 0, 0, None, None, None)
+        )(cams, features, phi, dens, has_dens, state.has_densities, it == 0, T, theta)
         target = _target + offsets[:, None, ::-1].astype(dtype)
         cam_index = jnp.broadcast_to(jnp.arange(num_cams, dtype=jnp.int32)[:, None], weight.shape)
         corr = correspondences_from_pixels(
             problem.cameras, target.reshape(-1, 2), cam_index.reshape(-1), p_model.reshape(-1, 3), part.reshape(-1),
             weight.reshape(-1), undistort=False, cue=Cue.REGION,
+            edge_normal=edge_normal.reshape(-1, 2) if config.edge_rows else None, tangent_weight=params.tangent_weight,
         )
         if extra is not None:
             corr = fuse_cue_weights(concatenate_correspondences(corr, extra), CueWeights() if weights is None else weights)
         sol = solve_pose(model, corr, T, theta, solver)
-        moved = se3_log(sol.T_world_root @ se3_inverse(T))
-        settled = (
-            (jnp.linalg.norm(moved[3:]) < params.settle_rotation)
-            & (jnp.linalg.norm(moved[:3]) < params.settle_translation)
-            & jnp.all(jnp.abs(sol.theta - theta) < params.settle_rotation)
-        )
+        settled = _mean_motion(model, corr, T, theta, sol.T_world_root, sol.theta) < params.settle_motion
         # No usable match at all means the contours agree: the pose has settled, not failed.
         no_matches = sol.status == Status.TOO_FEW
         solve_status = jnp.where(no_matches | (sol.status == Status.MAX_STEPS), Status.OK, sol.status)
@@ -303,7 +335,8 @@ def refine_pose_region(
             solve_status,
             status_where(jnp.any(overflow), Status.RENDER_OVERFLOW, Status.OK),
         )
-        return (sol.T_world_root, sol.theta, phi, dens, jnp.ones_like(has_dens), it + 1, settled | no_matches, frame_status, corr, phi0, jnp.sum(weight > 0).astype(jnp.int32))
+        return (sol.T_world_root, sol.theta, phi, dens_next, jnp.ones_like(has_dens), it + 1, settled | no_matches, frame_status, corr, phi0,
+                jnp.sum(weight > 0).astype(jnp.int32), dens_out)
 
     def cond(carry):
         it, settled, status = carry[5], carry[6], carry[7]
@@ -314,6 +347,7 @@ def refine_pose_region(
         n=jnp.zeros((rows, 3), dtype), m=jnp.zeros((rows, 3), dtype), p_model=jnp.zeros((rows, 3), dtype),
         part=jnp.zeros((rows,), jnp.int32), camera=jnp.zeros((rows,), jnp.int32), pixel=jnp.zeros((rows, 2), dtype),
         weight=jnp.zeros((rows,), dtype), cue=jnp.full((rows,), int(Cue.REGION), jnp.int32),
+        normal=jnp.zeros((rows, 3), dtype), tangent_weight=jnp.ones((rows,), dtype),
     )
     if extra is not None:
         empty = concatenate_correspondences(empty, extra.with_weight(jnp.zeros_like(extra.weight)))
@@ -321,9 +355,9 @@ def refine_pose_region(
     carried = jax.tree.map(lambda a: a.astype(dtype), carried)
     init = (
         T_init, theta_init.astype(dtype), phi_start, carried, state.has_densities, jnp.zeros((), jnp.int32),
-        jnp.zeros((), bool), jnp.asarray(Status.OK, jnp.int32), empty, phi_start, jnp.zeros((), jnp.int32),
+        jnp.zeros((), bool), jnp.asarray(Status.OK, jnp.int32), empty, phi_start, jnp.zeros((), jnp.int32), carried,
     )
-    T, theta, phi, dens, _, it, settled, status, corr, phi0, num_matches = jax.lax.while_loop(cond, round_, init)
+    T, theta, phi, _, _, it, settled, status, corr, phi0, num_matches, dens = jax.lax.while_loop(cond, round_, init)
     status = first_failure(status, status_where(settled, Status.OK, Status.MAX_STEPS))
 
     # Carry the segmentation and densities in full-frame coordinates.
