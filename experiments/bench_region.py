@@ -25,7 +25,6 @@ from jaxtrack.cues.levelset import (
     RegionConfig,
     RegionRefiner,
     band_sdf,
-    closest_point_matches,
     data_term,
     evolve,
     feature_channels,
@@ -96,7 +95,6 @@ def main():
     force = force_fn(dens)
     ls_fn = jax.jit(lambda p: evolve(p, phi0, force, params, config.levelset_iterations, config.redistance_every))
     step_only = jax.jit(lambda p: evolve(p, phi0, force, params, config.levelset_iterations, config.levelset_iterations))
-    match_fn = jax.jit(lambda p: closest_point_matches(phi0, p))
     phi = ls_fn(phi0)
     from jaxtrack.cues.levelset._refine import contour_matches
 
@@ -112,8 +110,7 @@ def main():
         ("density update (eq. 12, factor-4 grid) + data term", timed(lambda: force_fn(dens_fn(phi)))),
         (f"{config.levelset_iterations} level-set iterations incl. re-distancing", timed(lambda: ls_fn(phi0))),
         (f"{config.levelset_iterations} level-set iterations without re-distancing", timed(lambda: step_only(phi0))),
-        ("closest-point matching (dense)", timed(lambda: match_fn(phi))),
-        ("contour correspondences (matching + selection)", timed(lambda: cm(phi)[4])),
+        ("contour correspondences (contour selection + sparse closest-point matching)", timed(lambda: cm(phi)[4])),
         (f"Gauss-Newton ({config.solver_steps} steps, {config.capacity} rows)", timed(lambda: solve(corr).T_world_root)),
     ]
     per_iter = timed(lambda: ls_fn(phi0)) / config.levelset_iterations

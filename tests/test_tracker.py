@@ -207,23 +207,24 @@ def test_tracks_a_two_joint_arm_from_urdf_with_two_cameras(tmp_path):
 
 
 @pytest.mark.heavy
-def test_tracks_the_teabox_through_all_frames(shared_data):
-    """Real video (ViSP tea box, 49 frames of 640x480) with the default configuration, all cues.
+def test_tracks_the_teabox_on_real_video(shared_data):
+    """Real video (ViSP tea box, the first 16 of its 49 frames of 640x480) with the default configuration,
+    all cues.
 
-    Bounds from measurement on this machine (all cues, default parameters: every frame within 0.83° /
-    3.15 mm, mean 0.61° and 2.52 mm; DLR M3T on the same frames: 0.32° / 2.11 mm with ORB keypoints,
-    0.85° / 2.09 mm region only), with a margin.
+    Bounds from measurement on this machine (db84e47, all cues, default parameters; all 49 frames: every
+    frame within 0.70° / 3.36 mm, mean 0.59° and 2.46 mm; the first 16: within 0.65° / 3.36 mm, mean
+    0.51° and 2.67 mm; DLR M3T on the 49 frames: 0.32° / 2.11 mm mean with ORB keypoints, 0.85° / 2.09 mm
+    region only), with a margin. The whole sequence is in the README's tea-box table (`jaxtrack track`).
     """
     from jaxtrack.io import read_sequence
     from jaxtrack.track import pose_errors, track_sequence
 
     seq = read_sequence(shared_data / "sequences" / "visp_teabox")
-    run = track_sequence(seq, progress=False)
-    gt = seq.views[0].T_cam_obj[run.obj_id]
+    run = track_sequence(seq, progress=False, max_frames=16)
+    gt = seq.views[0].T_cam_obj[run.obj_id][:16]
     rot, trans = pose_errors(run.T_cam_obj(0), gt)
-    assert len(rot) == 49 and np.all(np.isfinite(rot)) and np.all(np.isfinite(trans))
+    assert len(rot) == 16 and np.all(np.isfinite(rot)) and np.all(np.isfinite(trans))
     assert all(s in ("OK", "UNCERTAIN") for s in run.status), run.status
-    assert np.all(rot < 5.0) and np.all(trans < 50.0)  # the 5 cm / 5° success criterion on every frame
-    assert rot.max() < 1.5 and trans.max() < 5.0, (rot.max(), trans.max())
-    assert rot[1:].mean() < 1.0 and trans[1:].mean() < 3.5, (rot[1:].mean(), trans[1:].mean())
+    assert rot.max() < 1.0 and trans.max() < 5.0, (rot.max(), trans.max())
+    assert rot[1:].mean() < 0.8 and trans[1:].mean() < 3.5, (rot[1:].mean(), trans[1:].mean())
     assert np.all(run.counts[1:, 0, :2] > 0)  # region and flow rows in every frame
