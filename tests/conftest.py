@@ -3,11 +3,37 @@ float32 paths are exercised explicitly where they matter."""
 
 import os
 import pathlib
+import shutil
+import tempfile
 
 import jax
 import pytest
 
 jax.config.update("jax_enable_x64", True)
+
+
+_CACHE_ENV = "JAXTRACK_TEST_XLA_CACHE"
+_cache_owner = pytest.StashKey[str]()
+
+
+def pytest_configure(config):
+    """One XLA compilation cache per test run, shared by its xdist workers: the controller makes the folder
+    before it starts the workers, which inherit its environment. Compilation dominates the suite, and many
+    programs (the pose solver, flow at the shared test sizes, renders) are needed by tests on both
+    workers: one compiles, the other loads. The controller removes the folder at the end."""
+    if not hasattr(config, "workerinput") and _CACHE_ENV not in os.environ:
+        os.environ[_CACHE_ENV] = tempfile.mkdtemp(prefix="jaxtrack-tests-xla-")
+        config.stash[_cache_owner] = os.environ[_CACHE_ENV]
+    jax.config.update("jax_compilation_cache_dir", os.environ[_CACHE_ENV])
+    os.environ["JAXTRACK_CACHE_DIR"] = os.environ[_CACHE_ENV]  # where `jaxtrack track` without --no-cache writes
+
+
+def pytest_unconfigure(config):
+    folder = config.stash.get(_cache_owner, None)
+    if folder:
+        shutil.rmtree(folder, ignore_errors=True)
+        os.environ.pop(_CACHE_ENV, None)
+
 
 SHARED_DATA = pathlib.Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
@@ -26,3 +52,4 @@ def pytest_collection_modifyitems(config, items):
     """Tests marked `heavy` (long, no shared module fixture) run first: under `-n 2` each worker then starts
     with one of them instead of one worker finishing a four-minute test alone at the end."""
     items.sort(key=lambda item: item.get_closest_marker("heavy") is None)
+
