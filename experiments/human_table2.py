@@ -235,6 +235,10 @@ def main(argv=None):
                     pathlib.Path(args.overlay).write_bytes(last.read_bytes())
                     overlay_done = True
                 rows[key] = r
+                if args.out:  # after every run: a crash later (e.g. LLVM out of map space) keeps the rows
+                    pathlib.Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+                    pathlib.Path(args.out).write_text(report(args, command, rows, time.perf_counter() - start,
+                                                             (load0, os.getloadavg()[0])))
                 err, fail = _cell(r)
                 print(f"{motion:5s} {subset:17s} {fps:3d} fps: {err}°, failure {fail}, root {r['root_deg']:.2f}° "
                       f"{r['root_mm']:.1f} mm, {r['s_per_frame']:.1f} s/frame", flush=True)
