@@ -140,7 +140,7 @@ def legacy_plane_normal_equations(model, T_world_root, theta, p_model, part, nor
         on_path = model.part_joints[part].astype(s.dtype)
         for j in range(model.num_joints):
             cols.append(sum(twists[j, c] * cols[c] for c in range(6)) * on_path[:, j : j + 1])
-    w = weight[..., None]
+    w = weight if weight.ndim == 2 else weight[..., None]  # per plane (N, 2) since edge rows, or per row (N,)
     wcols = [w * c for c in cols]
     dim = len(cols)
     entries = {(d, e): jnp.sum(wcols[d] * cols[e]) for d in range(dim) for e in range(d, dim)}
