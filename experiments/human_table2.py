@@ -18,9 +18,11 @@ below; flow only always drifts. Goal: ≤ 4° with all cues at every frame rate,
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import pathlib
 import platform
+import subprocess
 import sys
 import tempfile
 import time
@@ -37,6 +39,7 @@ LIMBS = ("ltibia_rx", "rtibia_rx", "lradius_rx", "rradius_rx")  # knees and elbo
 SUBSETS = ("flow", "region", "region+sift", "region+flow", "region+flow+sift")
 PAPER = {"120": "4.29 ± 3.38", "24": "5.83 ± 4.91"}
 FAIL_DEG = 30.0
+STAGES = ("read_s", "detect_s", "match_s", "step_s", "total_s")
 
 
 def write_motion_sequences(motion: str, frames: int, fps_list, scale: float, folder: pathlib.Path, appearance: str) -> dict:
@@ -69,6 +72,7 @@ def score(run, seq, fps: int) -> dict:
         "mean": float(limbs.mean()), "std": float(limbs.std()), "max": float(limbs.max()),
         "first_failure": None if not bad.size else int(bad[0] + 1),
         "failure_s": None if not bad.size else float((bad[0] + 1) / fps),
+        "failure_joint": None if not bad.size else run.joint_names[int(np.argmax(err[bad[0] + 1]))],
         "root_deg": float(rot[1:].mean()), "root_mm": float(trans[1:].mean()),
         "frames": len(run.frame_ids) - 1, "curves": (gt[:, [run.joint_names.index(n) for n in LIMBS]],
                                                    run.joints_urdf()[:, [run.joint_names.index(n) for n in LIMBS]]),
@@ -88,19 +92,64 @@ def run_one(seq_path: pathlib.Path, subset: str, fps: int, overlay: pathlib.Path
     if recorder is not None:
         recorder.writer.close()
     out = score(run, seq, fps)
-    seen, steps = set(), []
+    seen, kept = set(), []
     for k in range(1, len(run.timings)):  # frames that compiled a new crop size class are left out
         crop = (run.crops or [None] * len(run.timings))[k]
         if crop is not None and crop not in seen:
             seen.add(crop)
             continue
-        steps.append(run.timings[k]["total_s"])
-    out["s_per_frame"] = float(np.median(steps)) if steps else float("nan")
+        kept.append(k)
+    out["s_per_frame"] = float(np.median([run.timings[k]["total_s"] for k in kept])) if kept else float("nan")
+    # Per stage (host seconds, median over the frames that compiled nothing): frame reading, SIFT detection and
+    # matching on the host, the jitted step (flow, prediction, level sets, Gauss-Newton, occlusion).
+    out["stages"] = {name: float(np.median([run.timings[k].get(name, 0.0) for k in kept])) if kept else float("nan")
+                     for name in STAGES}
     out["first_s"] = float(run.timings[0]["total_s"] + (run.timings[1]["total_s"] if len(run.timings) > 1 else 0.0))
     out["wall_s"] = time.perf_counter() - t0
     out["status"] = {s: run.status.count(s) for s in set(run.status)}
     out["lost_joint_frames"] = sum(bool(j) for j in (run.lost_joints or []))
     return out
+
+
+def run_in_subprocess(seq_path: pathlib.Path, subset: str, fps: int, overlay: pathlib.Path | None, region: dict) -> dict | None:
+    """`run_one` in a fresh Python: every configuration compiles its own 4-camera programs (or loads them from
+    the on-disk cache), and one process holding ~10 of them ran out of LLVM section memory (the mappings
+    of the compiled code; it died on the 11th). None when the child fails (its stderr tail is printed)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        result = pathlib.Path(tmp) / "result.json"
+        cmd = [sys.executable, __file__, "--one", str(seq_path), subset, str(fps), "--result", str(result),
+               "--region", json.dumps(region)]
+        if overlay is not None:
+            cmd += ["--overlay-dir", str(overlay)]
+        proc = subprocess.run(cmd, check=False, capture_output=True, text=True)
+        if proc.returncode != 0 or not result.is_file():
+            print(f"  {seq_path.name} {subset}: the run failed (exit {proc.returncode}):\n{proc.stderr[-2000:]}", flush=True)
+            return None
+        out = json.loads(result.read_text())
+    out["curves"] = tuple(np.asarray(c) for c in out["curves"])
+    return out
+
+
+def _child(argv) -> None:
+    """`--one SEQ SUBSET FPS --result FILE [--overlay-dir DIR] [--region JSON]`: one run, its result as JSON."""
+    import cv2
+
+    cv2.setNumThreads(1)
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--one", nargs=3, required=True)
+    ap.add_argument("--result", required=True)
+    ap.add_argument("--overlay-dir", default=None)
+    ap.add_argument("--region", default="{}")
+    args = ap.parse_args(argv)
+    region = json.loads(args.region)
+    if region:  # the experiment's knob on the chain defaults (tangent weight, joint prior)
+        from jaxtrack.track import _tracker
+
+        _tracker.CHAIN_REGION = {**_tracker.CHAIN_REGION, **region}
+    seq, subset, fps = args.one
+    out = run_one(pathlib.Path(seq), subset, int(fps), pathlib.Path(args.overlay_dir) if args.overlay_dir else None)
+    out["curves"] = [np.asarray(c).tolist() for c in out["curves"]]
+    pathlib.Path(args.result).write_text(json.dumps(out))
 
 
 def _overlay_recorder(seq, folder: pathlib.Path):
@@ -123,10 +172,19 @@ def _overlay_recorder(seq, folder: pathlib.Path):
                            pose_vertices=pose_vertices)
 
 
+def _region_settings(args) -> str:
+    from jaxtrack.track import _tracker
+
+    region = dict(_tracker.CHAIN_REGION)
+    region.update({k: v for k, v in (("tangent_weight", args.tangent_weight), ("joint_prior", args.joint_prior)) if v is not None})
+    return ", ".join(f"{k} = {v:g}" for k, v in region.items())
+
+
 def _cell(r) -> str:
     if r is None:
         return "not run (time)"
-    fail = "none" if r["first_failure"] is None else f"frame {r['first_failure']} ({r['failure_s']:.2f} s)"
+    fail = ("none" if r["first_failure"] is None else
+            f"frame {r['first_failure']} ({r['failure_s']:.2f} s, {r.get('failure_joint', '?')})")
     return f"{r['mean']:.2f} ± {r['std']:.2f}", fail
 
 
@@ -140,6 +198,8 @@ def report(args, command, rows, elapsed, load) -> str:
         f"{args.frames / 120:.2f} s of motion; the paper tracks 180), 4 cameras at {round(640 * args.scale) // 4 * 4}x"
         f"{round(480 * args.scale) // 4 * 4}, appearance '{args.appearance}', rendered by the independent ray caster; "
         "26-DoF body model of capsules (the tracker tracks the same model that rendered the images)."), "",
+        (f"Region cue on chains: {_region_settings(args)} (`jaxtrack.track` CHAIN_REGION with this run's overrides); "
+         "one configuration per subprocess."), "",
         (f"Error: |estimated − true| of {', '.join(LIMBS)} over the tracked frames, mean ± std (degrees). Failure: the "
         f"first frame with any joint off by more than {FAIL_DEG:.0f}°."), "",
         ("| motion | cues | fps | frames | knee + elbow error (°) | max (°) | first failure | root (° / mm) | s / frame | "
@@ -147,8 +207,9 @@ def report(args, command, rows, elapsed, load) -> str:
         "|---|---|---:|---:|---:|---:|---|---:|---:|---:|",
     ]
     for (motion, subset, fps), r in rows.items():
-        if r is None:
-            lines.append(f"| {motion} | {subset} | {fps} | | not run (time) | | | | | |")
+        if r is None or r == "failed":
+            what = "not run (time)" if r is None else "the run failed (its stderr is in the script's output)"
+            lines.append(f"| {motion} | {subset} | {fps} | | {what} | | | | | |")
             continue
         err, fail = _cell(r)
         lines.append(f"| {motion} | {subset} | {fps} | {r['frames']} | {err} | {r['max']:.1f} | {fail} | "
@@ -156,6 +217,20 @@ def report(args, command, rows, elapsed, load) -> str:
     lines += ["", ("The paper (real images of a subject in a dark suit, 4 cameras, all cues): "
               f"{PAPER['120']}° at 120 fps, {PAPER['24']}° at 24 fps; region only fails at 40 fps and below; flow "
               "only drifts. Goal: ≤ 4° with all cues at every frame rate and no failure at 24 fps."), ""]
+    done = [(k, r) for k, r in rows.items() if isinstance(r, dict)]
+    if done:
+        lines += [
+            ("Speed per stage (host seconds per frame, median over the frames that compiled nothing; the step is one "
+             "jitted program, so its parts show as the differences between the cue subsets: flow only = flow + "
+             "prediction + occlusion map, region only = level sets + matching + Gauss-Newton rounds + occlusion map):"), "",
+            "| motion | cues | fps | read | SIFT detect | SIFT match | jitted step | total | first frame incl. compile (s) |",
+            "|---|---|---:|---:|---:|---:|---:|---:|---:|",
+        ]
+        for (motion, subset, fps), r in done:
+            st = r["stages"]
+            lines.append(f"| {motion} | {subset} | {fps} | {st['read_s']:.2f} | {st['detect_s']:.2f} | {st['match_s']:.2f} | "
+                         f"{st['step_s']:.2f} | {st['total_s']:.2f} | {r['first_s']:.0f} |")
+        lines.append("")
     return "\n".join(lines) + "\n"
 
 
@@ -166,7 +241,7 @@ def plot(path: pathlib.Path, rows) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    done = [(k, r) for k, r in rows.items() if r is not None]
+    done = [(k, r) for k, r in rows.items() if isinstance(r, dict)]
     if not done:
         return
     (motion, subset, fps), r = max(done, key=lambda kr: (kr[0][1] == "region+flow+sift", kr[0][2]))
@@ -203,7 +278,12 @@ def main(argv=None):
     ap.add_argument("--plot", default=str(RESULTS / "human_table2.png"))
     ap.add_argument("--overlay", default=str(RESULTS / "human_table2_overlay.png"),
                     help="one overlay frame (all-cue run at the highest frame rate)")
+    ap.add_argument("--tangent-weight", type=float, default=None,
+                    help="override the region cue's tangent weight for chains (jaxtrack.track CHAIN_REGION)")
+    ap.add_argument("--joint-prior", type=float, default=None,
+                    help="override the joint prior's strength for chains (jaxtrack.track CHAIN_REGION)")
     args = ap.parse_args(argv)
+    region = {k: v for k, v in (("tangent_weight", args.tangent_weight), ("joint_prior", args.joint_prior)) if v is not None}
     args.motions = [m.strip() for m in args.motions.split(",") if m.strip()]
     fps_list = [int(f) for f in args.fps.split(",")]
     for m in args.motions:
@@ -229,16 +309,18 @@ def main(argv=None):
                     continue
                 want_overlay = not overlay_done and subset == "region+flow+sift" and args.overlay
                 frames_dir = folder / f"overlay_{motion}_{fps}" if want_overlay else None
-                r = run_one(seqs[fps], subset, fps, frames_dir)
-                if frames_dir is not None:
+                r = run_in_subprocess(seqs[fps], subset, fps, frames_dir, region)
+                if r is not None and frames_dir is not None:
                     last = max(frames_dir.glob("*.png"))
                     pathlib.Path(args.overlay).write_bytes(last.read_bytes())
                     overlay_done = True
-                rows[key] = r
+                rows[key] = r if r is not None else "failed"
                 if args.out:  # after every run: a crash later (e.g. LLVM out of map space) keeps the rows
                     pathlib.Path(args.out).parent.mkdir(parents=True, exist_ok=True)
                     pathlib.Path(args.out).write_text(report(args, command, rows, time.perf_counter() - start,
                                                              (load0, os.getloadavg()[0])))
+                if r is None:
+                    continue
                 err, fail = _cell(r)
                 print(f"{motion:5s} {subset:17s} {fps:3d} fps: {err}°, failure {fail}, root {r['root_deg']:.2f}° "
                       f"{r['root_mm']:.1f} mm, {r['s_per_frame']:.1f} s/frame", flush=True)
@@ -253,4 +335,7 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    if "--one" in sys.argv[1:]:
+        _child(sys.argv[1:])
+    else:
+        main()

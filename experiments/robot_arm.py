@@ -32,6 +32,7 @@ SHARED = pathlib.Path(os.environ.get("JAXTRACK_SHARED", pathlib.Path(__file__).r
 ROBOTS = SHARED / "data" / "articulated"
 PANDA = ROBOTS / "example-robot-data" / "robots" / "panda_description" / "urdf" / "panda.urdf"
 ARM_JOINTS = tuple(f"panda_joint{k}" for k in range(1, 8))
+STAGES = ("read_s", "detect_s", "match_s", "step_s", "total_s")
 
 
 def write_arm_sequence(folder: pathlib.Path, cameras: int, frames: int, scale: float, step_deg: float, seed: int):
@@ -71,10 +72,12 @@ def run_one(seq_path, cues: str, limits: bool) -> dict:
         if run.crops[k] is not None and run.crops[k] not in seen:
             seen.add(run.crops[k])
             continue
-        steady.append(run.timings[k]["total_s"])
-    return {"joint_mean": float(err.mean()), "joint_max": float(err.max()), "per_joint": err.mean(0),
+        steady.append(k)
+    stages = {name: float(np.median([run.timings[k].get(name, 0.0) for k in steady])) if steady else float("nan")
+              for name in STAGES}
+    return {"stages": stages,"joint_mean": float(err.mean()), "joint_max": float(err.max()), "per_joint": err.mean(0),
             "rot": float(rot[1:].mean()), "trans": float(trans[1:].mean()), "frames": len(err),
-            "s_per_frame": float(np.median(steady)) if steady else float("nan"), "wall_s": wall,
+            "s_per_frame": stages["total_s"], "wall_s": wall,
             "first_s": float(run.timings[0]["total_s"] + run.timings[1]["total_s"]),
             "status": {s: run.status.count(s) for s in set(run.status)},
             "curve": (np.degrees(gt[:, idx]), np.degrees(run.joints_urdf()[:, idx]))}
@@ -105,6 +108,14 @@ def report(args, command, rows, elapsed, load) -> str:
         for (cues, cams, limits), r in done:
             lines.append(f"- {cues}, {cams} camera(s), limits {'on' if limits else 'off'}: "
                          + " / ".join(f"{v:.2f}" for v in r["per_joint"]))
+        lines += ["", ("Speed per stage (host seconds per frame, median over the steps that compiled nothing; the jitted "
+                       "step holds flow, prediction, level sets, Gauss-Newton and the occlusion map):"), "",
+                  "| cues | cameras | joint limits | read | SIFT detect | SIFT match | jitted step | total |",
+                  "|---|---:|---|---:|---:|---:|---:|---:|"]
+        for (cues, cams, limits), r in done:
+            st = r["stages"]
+            lines.append(f"| {cues} | {cams} | {'on' if limits else 'off'} | {st['read_s']:.2f} | {st['detect_s']:.2f} | "
+                         f"{st['match_s']:.2f} | {st['step_s']:.2f} | {st['total_s']:.2f} |")
     lines += ["", ("s / frame: median over the steps that compiled nothing; first frame: Tracker.start plus the first "
               "step (its compilation).")]
     return "\n".join(lines) + "\n"

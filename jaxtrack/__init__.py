@@ -28,6 +28,7 @@ from .geometry import se3_exp as se3_exp
 from .geometry import se3_log as se3_log
 from .solve import Correspondences as Correspondences
 from .solve import Cue as Cue
+from .solve import JointPrior as JointPrior
 from .solve import PoseSolution as PoseSolution
 from .solve import PoseStatus as PoseStatus
 from .solve import SolverConfig as SolverConfig

@@ -147,6 +147,33 @@ def plucker_residuals(model: KinematicModel, T_world_root: jax.Array, theta: jax
     return point_line_residual(p_world, corr.n, corr.m)
 
 
+class JointPrior(eqx.Module):
+    """A quadratic pull of the joint angles towards an anchor: damping for weakly observed joints.
+
+    Adds Σ_j k |θ_j − θ̄_j|² to eq. 4 with one stiffness k = `strength` · mean_j H_jj, the mean joint
+    diagonal of the data's normal equations at the start of the solve: a joint (or a combination of
+    joints, such as pelvis pitch against back and hips) whose data curvature is well below the mean
+    stays near θ̄, while well observed joints barely feel it. Relative, so it does not depend on the
+    number of rows, their weights or the units of the model. The method uses no priors; the tracker
+    anchors at the frame's prediction (`TrackerParams.joint_prior`, measured in experiments/human_table2.py).
+
+    Attributes:
+        theta: (J,) anchor angles (model units).
+        strength: scalar ≥ 0 (0: no prior).
+    """
+
+    theta: jax.Array
+    strength: jax.Array
+
+
+def _prior_stiffness(H: jax.Array, strength: jax.Array) -> jax.Array:
+    """k = strength · mean joint diagonal of H ((6+J)², data only); 0 for a rigid object."""
+    joint_diag = jnp.diagonal(H)[6:]
+    if joint_diag.shape[0] == 0:
+        return jnp.zeros((), H.dtype)
+    return jax.lax.stop_gradient(strength * jnp.mean(joint_diag))
+
+
 class PoseProblem(eqx.Module):
     """The data of one solve (the `args` of the residual and of the iterations).
 
@@ -156,6 +183,7 @@ class PoseProblem(eqx.Module):
         T_init: (4, 4) the chart's origin: T_world_root = exp(δ̂) T_init.
         sqrt_weight: (N, 2) √w per plane (the row's weight times its plane weight), zero for padding.
         normals, offsets: (N, 2, 3), (N, 2) the two planes through each line (`line_planes`).
+        prior_theta, prior_stiffness: (J,) anchor and scalar k of the `JointPrior` (k = 0: none).
     """
 
     model: KinematicModel
@@ -164,14 +192,18 @@ class PoseProblem(eqx.Module):
     sqrt_weight: jax.Array
     normals: jax.Array
     offsets: jax.Array
+    prior_theta: jax.Array
+    prior_stiffness: jax.Array
 
 
 def _weighted_residual(y: jax.Array, problem: PoseProblem) -> jax.Array:
-    """Chart residual: y = (δ, Θ) with T_world_root = exp(δ̂) T_init; plane form of eq. 4, (N, 2)."""
+    """Chart residual: y = (δ, Θ) with T_world_root = exp(δ̂) T_init; plane form of eq. 4 (2N,), then
+    the joint prior's J rows √k (θ − θ̄)."""
     T_root = se3_exp(y[:6]) @ problem.T_init
     corr = problem.corr
     s = plane_residuals(problem.model, T_root, y[6:], corr.p_model, corr.part, problem.normals, problem.offsets)
-    return s * problem.sqrt_weight
+    prior = jnp.sqrt(problem.prior_stiffness) * (y[6:] - problem.prior_theta)
+    return jnp.concatenate([(s * problem.sqrt_weight).reshape(-1), prior])
 
 
 def _gauss_newton_iterate(y0: jax.Array, problem: PoseProblem, config: SolverConfig):
@@ -182,12 +214,20 @@ def _gauss_newton_iterate(y0: jax.Array, problem: PoseProblem, config: SolverCon
     """
     corr, weight = problem.corr, problem.sqrt_weight**2
 
+    J = problem.prior_theta.shape[0]
+    k = problem.prior_stiffness
+
     def normal_equations(x):
         T_root, theta = x
         # Looked up at trace time, so experiments/bench_pose.py can swap in the builder it compares.
-        return plane_normal_equations(
+        H, g, cost = plane_normal_equations(
             problem.model, T_root, theta, corr.p_model, corr.part, problem.normals, problem.offsets, weight
         )
+        if J == 0:
+            return H, g, cost
+        d = theta - problem.prior_theta
+        H = H.at[6:, 6:].add(k * jnp.eye(J, dtype=H.dtype))
+        return H, g.at[6:].add(k * d), cost + k * jnp.sum(d**2)
 
     def retract(x, delta):
         T_root, theta = x
@@ -299,6 +339,7 @@ def solve_pose(
     theta_init: jax.Array | None = None,
     config: SolverConfig = DEFAULT_CONFIG,
     cameras: Camera | None = None,
+    prior: JointPrior | None = None,
 ) -> PoseSolution:
     """Solve χ = (ξ, Θ) minimising Σ w_i |T(χ) X_i × n_i − m_i|² (eq. 4-5). Jittable and vmappable.
 
@@ -316,6 +357,7 @@ def solve_pose(
         cameras: the rig `corr` was built with (optional). When given, a T_init that puts most of
             the weighted model points behind their cameras is INVALID_INPUT (the Plücker lines
             alone cannot tell in front from behind).
+        prior: a `JointPrior` on Θ (default none, as the method).
 
     Returns:
         PoseSolution. Statuses, first cause first: INVALID_INPUT, TOO_FEW (inputs), NONFINITE,
@@ -333,8 +375,19 @@ def solve_pose(
     y0 = jnp.concatenate([jnp.zeros((6,), dtype), theta_safe])
     normals, offsets, plane_weight = line_planes(clean.n, clean.m, clean.normal, clean.tangent_weight)
     weight = weight[:, None] * plane_weight
+    J = model.num_joints
+    if prior is None or J == 0:
+        prior_theta, stiffness = jnp.zeros((J,), dtype), jnp.zeros((), dtype)
+    else:
+        prior_theta = jnp.broadcast_to(jnp.asarray(prior.theta, dtype), (J,))
+        H0, _, _ = plane_normal_equations(model, T_init_safe, theta_safe, clean.p_model, clean.part, normals, offsets, weight)
+        strength = jnp.asarray(prior.strength, dtype)
+        stiffness = _prior_stiffness(H0, jnp.where(jnp.isfinite(strength) & (strength > 0), strength, 0.0))
+        stiffness = jnp.where(jnp.isfinite(stiffness), stiffness, 0.0)
+        prior_theta = jnp.where(jnp.isfinite(prior_theta), prior_theta, theta_safe)
     problem = PoseProblem(
-        model=model, corr=clean, T_init=T_init_safe, sqrt_weight=_safe_sqrt(weight), normals=normals, offsets=offsets
+        model=model, corr=clean, T_init=T_init_safe, sqrt_weight=_safe_sqrt(weight), normals=normals, offsets=offsets,
+        prior_theta=prior_theta, prior_stiffness=stiffness,
     )
     if config.backend == "optimistix":
         sol = optx.least_squares(
@@ -435,11 +488,12 @@ def estimate_pose(
     config: SolverConfig = DEFAULT_CONFIG,
     cameras: Camera | None = None,
     throw: bool = True,
+    prior: JointPrior | None = None,
 ) -> PoseSolution:
     """API-edge pose solve: validates the inputs, runs the jitted `solve_pose`, checks the status.
 
     Args:
-        model, corr, T_init, theta_init, config, cameras: as for `solve_pose`. Pass the rig `corr`
+        model, corr, T_init, theta_init, config, cameras, prior: as for `solve_pose`. Pass the rig `corr`
             was built with as `cameras` to have a T_init behind the cameras rejected.
         throw: raise `StatusError` for an unusable solver status (DEGENERATE, NONFINITE,
             SOLVER_FAILED); with False the solution comes back with its status.
@@ -464,7 +518,9 @@ def estimate_pose(
     _check_rigid(T_init, dtype)
     theta = np.zeros(model.num_joints) if theta_init is None else np.asarray(theta_init)
     # The compiled solve checks its inputs first (never raising); its status is turned into an error here.
-    sol = solve_pose(model, corr, T_init, theta_init, config, cameras)
+    if prior is not None and not (np.all(np.isfinite(np.asarray(prior.strength))) and np.all(np.asarray(prior.strength) >= 0)):
+        raise ValueError(f"prior.strength must be finite and ≥ 0, got {np.asarray(prior.strength)}")
+    sol = solve_pose(model, corr, T_init, theta_init, config, cameras, prior)
     status = Status(int(sol.status))
     if status == Status.INVALID_INPUT:
         reason = _describe_invalid(model, corr, T_init, theta, cameras)

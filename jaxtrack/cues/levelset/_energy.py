@@ -59,6 +59,9 @@ class RegionParams(eqx.Module):
         tangent_weight: weight of a contour match's residual along the contour, relative to the one across
             it, when `RegionConfig.edge_rows` is on (1 = the paper's point rows; small values keep a weak
             hold on motions the silhouette does not see, such as a symmetric body's spin).
+        joint_prior: strength of the `JointPrior` that holds the joint angles near the refinement's start
+            (the frame's prediction), relative to the mean joint curvature of the data; 0 = none (the
+            method; rigid objects have no joints). See `jaxtrack.solve.JointPrior`.
     """
 
     lam: jax.Array
@@ -76,6 +79,7 @@ class RegionParams(eqx.Module):
     alpha_match: jax.Array
     settle_motion: jax.Array
     tangent_weight: jax.Array
+    joint_prior: jax.Array
 
 
 def region_params(crop_shape: tuple[int, int] = (256, 256), dtype=jnp.float32, **overrides) -> RegionParams:
@@ -103,6 +107,7 @@ def region_params(crop_shape: tuple[int, int] = (256, 256), dtype=jnp.float32, *
         "alpha_match": 10.0,
         "settle_motion": 0.05,
         "tangent_weight": 0.1,
+        "joint_prior": 0.0,
     }
     for name, value in overrides.items():
         if name not in values:

@@ -27,6 +27,7 @@ from ...solve import (
     Correspondences,
     Cue,
     CueWeights,
+    JointPrior,
     SolverConfig,
     concatenate_correspondences,
     correspondences_from_pixels,
@@ -296,6 +297,7 @@ def refine_pose_region(
     carried = LocalDensities(dens0(state.densities.mean, offsets), dens0(state.densities.var, offsets))
     solver = SolverConfig(max_steps=config.solver_steps)
     num_cams = offsets.shape[0]
+    theta_anchor = jnp.asarray(theta_init, dtype)  # the joint prior holds Θ near the refinement's start
 
     def per_camera(cam, feats, phi_prev, dens, has_dens, carried_in, first, T, theta):
         out = render(mesh, cam, T, theta, model, problem.plan)
@@ -331,7 +333,7 @@ def refine_pose_region(
         )
         if extra is not None:
             corr = fuse_cue_weights(concatenate_correspondences(corr, extra), CueWeights() if weights is None else weights)
-        sol = solve_pose(model, corr, T, theta, solver)
+        sol = solve_pose(model, corr, T, theta, solver, prior=JointPrior(theta_anchor, params.joint_prior))
         settled = _mean_motion(model, corr, T, theta, sol.T_world_root, sol.theta) < params.settle_motion
         # No usable match at all means the contours agree: the pose has settled, not failed.
         no_matches = sol.status == Status.TOO_FEW
