@@ -156,11 +156,14 @@ def test_track_refuses_a_joint_the_model_lacks(panda_seq, tmp_path):
 
 
 def test_tracks_a_short_mocap_walk_with_two_cameras(shared_data, tmp_path):
-    """The 26-DoF body driven by the CMU walk, two cameras at 160x120 in the dark suit, 4 frames at 30/s,
-    tracked by `track_sequence` with region + flow: knees and elbows stay within bounds measured on this
-    sequence, and the step compiles once per crop size class (no recompilation per frame).
+    """The 26-DoF body driven by the CMU walk, two cameras at 160x120 (the body about 110 px tall, photo
+    clothing), 4 frames at 30/s, tracked by `track_sequence` with region + flow: knees and elbows stay
+    within bounds measured on this sequence, and the step compiles once per crop size class (no
+    recompilation per frame).
 
-    Measured (commit of this test): knee/elbow error up to KNEE° , every joint up to ALL°, root ROOT°."""
+    Measured: knee/elbow errors up to 9.35° (left knee), every joint up to 10.8° (right foot), root up to
+    5.3° / 16 mm (bounds with a margin). In the dark suit the left knee ends 26.5° off: with two cameras
+    and a uniform dark body the crossing legs are hard to tell apart."""
     import equinox as eqx
 
     import jaxtrack as jt
@@ -170,7 +173,7 @@ def test_tracks_a_short_mocap_walk_with_two_cameras(shared_data, tmp_path):
 
     model, T, theta = mocap_motion(shared_data / "mocap" / "07-walk.asf", shared_data / "mocap" / "07_05-walk.amc",
                                    frames=13)
-    cfg = ArticulatedSynthConfig(cameras=2, width=160, height=120, focal=300.0, distance=4500.0, appearance="suit",
+    cfg = ArticulatedSynthConfig(cameras=2, width=160, height=120, focal=300.0, distance=4500.0, appearance="photo",
                                  subsample=4)
     seq = read_sequence(write_articulated_sequence(model, T, theta, cfg, tmp_path / "walk"))
     before = eqx.debug.get_num_traces(jt.track._step.track_step)
@@ -184,4 +187,4 @@ def test_tracks_a_short_mocap_walk_with_two_cameras(shared_data, tmp_path):
     print(f"walk, 2 cameras: knees/elbows {limbs.max(0).round(2)}°, all joints max {err.max():.2f}° "
           f"({run.joint_names[int(np.argmax(err.max(0)))]}), root {rot.max():.2f}° {trans.max():.1f} mm, {run.status}")
     assert all(s in ("OK", "UNCERTAIN") for s in run.status), run.status
-    assert limbs.max() < 99.0 and err.max() < 99.0 and rot.max() < 99.0, (limbs, err, rot)
+    assert limbs.max() < 14.0 and err.max() < 16.0 and rot.max() < 8.0 and trans.max() < 25.0, (limbs, err, rot, trans)
