@@ -155,7 +155,7 @@ class JointPrior(eqx.Module):
     joints, such as pelvis pitch against back and hips) whose data curvature is well below the mean
     stays near θ̄, while well observed joints barely feel it. Relative, so it does not depend on the
     number of rows, their weights or the units of the model. The method uses no priors; the tracker
-    anchors at the frame's prediction (`TrackerParams.joint_prior`, measured in experiments/human_table2.py).
+    anchors at the frame's prediction (`RegionParams.joint_prior`; `jaxtrack.track` CHAIN_REGION says why).
 
     Attributes:
         theta: (J,) anchor angles (model units).
@@ -202,7 +202,7 @@ def _weighted_residual(y: jax.Array, problem: PoseProblem) -> jax.Array:
     T_root = se3_exp(y[:6]) @ problem.T_init
     corr = problem.corr
     s = plane_residuals(problem.model, T_root, y[6:], corr.p_model, corr.part, problem.normals, problem.offsets)
-    prior = jnp.sqrt(problem.prior_stiffness) * (y[6:] - problem.prior_theta)
+    prior = _safe_sqrt(problem.prior_stiffness) * (y[6:] - problem.prior_theta)
     return jnp.concatenate([(s * problem.sqrt_weight).reshape(-1), prior])
 
 
