@@ -59,6 +59,25 @@ def write_motion_sequences(motion: str, frames: int, fps_list, scale: float, fol
     return out
 
 
+def motion_steps(motions, frames: int, fps_list) -> str:
+    """How far the body moves between two tracked frames, per motion and frame rate (the ground truth alone,
+    no tracking): the largest joint-angle step per frame (its mean over the frames and its maximum, with
+    the joint) and the root's mean step. A markdown table."""
+    from jaxtrack.synth import mocap_motion
+
+    lines = ["| motion | fps | largest joint step per frame, mean (°) | largest step (°, joint) | root step (mm) |",
+             "|---|---:|---:|---:|---:|"]
+    for motion in motions:
+        asf, amc = (SHARED / "data" / "mocap" / f for f in MOTIONS[motion])
+        model, T, theta = mocap_motion(asf, amc, frames=frames)
+        for fps in fps_list:
+            step = np.degrees(np.abs(np.diff(theta[:: 120 // fps], axis=0)))
+            root = np.linalg.norm(np.diff(T[:: 120 // fps, :3, 3], axis=0), axis=1)
+            worst = model.joint_names[int(np.argmax(step.max(0)))]
+            lines.append(f"| {motion} | {fps} | {step.max(1).mean():.1f} | {step.max():.1f} ({worst}) | {root.mean():.0f} |")
+    return "\n".join(lines) + "\n"
+
+
 def score(run, seq, fps: int) -> dict:
     """Knee/elbow errors (deg) over the tracked frames, root errors, the first failure (any joint > 30°)."""
     from jaxtrack.track import pose_errors
@@ -282,6 +301,8 @@ def main(argv=None):
                     help="override the region cue's tangent weight for chains (jaxtrack.track CHAIN_REGION)")
     ap.add_argument("--joint-prior", type=float, default=None,
                     help="override the joint prior's strength for chains (jaxtrack.track CHAIN_REGION)")
+    ap.add_argument("--motion-stats", action="store_true",
+                    help="only print (and write to results/human_motion_steps.md) how far each motion moves per frame")
     args = ap.parse_args(argv)
     region = {k: v for k, v in (("tangent_weight", args.tangent_weight), ("joint_prior", args.joint_prior)) if v is not None}
     args.motions = [m.strip() for m in args.motions.split(",") if m.strip()]
@@ -293,6 +314,13 @@ def main(argv=None):
         if 120 % f:
             raise SystemExit(f"human_table2: --fps {f} does not divide 120")
     subsets = [c.strip() for c in args.cues.split(",") if c.strip()]
+    if args.motion_stats:
+        command = "python experiments/human_table2.py " + " ".join(argv if argv is not None else sys.argv[1:])
+        text = (f"# Joint motion per tracked frame (ground truth)\n\nCommand: `{command}`  \nThe first {args.frames} "
+                "mocap frames of each motion, subsampled to each frame rate.\n\n" + motion_steps(args.motions, args.frames, fps_list))
+        print(text)
+        (RESULTS / "human_motion_steps.md").write_text(text)
+        return text
     command = "python experiments/human_table2.py " + " ".join(argv if argv is not None else sys.argv[1:])
     load0 = os.getloadavg()[0]
     start = time.perf_counter()
