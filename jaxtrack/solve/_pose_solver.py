@@ -155,8 +155,7 @@ class JointPrior(eqx.Module):
     joints, such as pelvis pitch against back and hips) whose data curvature is well below the mean
     stays near θ̄, while well observed joints barely feel it. Relative, so it does not depend on the
     number of rows, their weights or the units of the model. The method uses no priors; the tracker
-    anchors the prediction's prior at the previous frame's Θ and the refinement's at the prediction
-    (`RegionParams.joint_prior`; `jaxtrack.track` CHAIN_REGION says why).
+    anchors at the frame's prediction (`RegionParams.joint_prior`; `jaxtrack.track` CHAIN_REGION says why).
 
     Attributes:
         theta: (J,) anchor angles (model units).

@@ -54,7 +54,6 @@ from ..solve import (
     Correspondences,
     Cue,
     CueWeights,
-    JointPrior,
     SolverConfig,
     concatenate_correspondences,
     fuse_cue_weights,
@@ -284,14 +283,8 @@ def track_step(
     # 2. Prediction from the motion cues (n_C → n_OF in the weights).
     motion, ren_t, cams = motion_correspondences(setup, state, frames, matches, offsets, params, crop_shape)
     if motion is not None:
-        # The joint prior (`RegionParams.joint_prior`, 0 for rigid objects) anchored at Θ_t: a joint that the
-        # motion rows barely observe (a 10 px foot seen by a few flow vectors from its neighbours) otherwise
-        # takes whatever those rows say, and the refinement, anchored at the prediction, keeps it. Measured on
-        # the mocap run at 120 fps, all cues, 12 frames: the right ankle spun 8° → 150° off without it and
-        # stayed within 5° with it (experiments/human_table2.py).
         pred = solve_pose(model, fuse_cue_weights(motion, params.weights, prediction=True), T_t, theta_t,
-                          SolverConfig(max_steps=config.prediction_steps),
-                          prior=JointPrior(theta_t, params.region.joint_prior))
+                          SolverConfig(max_steps=config.prediction_steps))
         use = is_usable(pred.status)
         T_pred = jnp.where(use, pred.T_world_root, T_t)
         theta_pred = jnp.clip(jnp.where(use, pred.theta, theta_t), params.theta_lower, params.theta_upper)

@@ -64,7 +64,6 @@ def _initial_appearance_jit(setup: TrackerSetup, frames, T, theta, params: Occlu
 # from the true pose on the static first frame, mean |Δθ| over 26 DoF, walk / run): edge rows with tangent
 # weight 0.1 let thin limbs slide along their own contour (3.5° / 2.0°, the left foot 32° off); point rows
 # 1.3° / 2.0°; plus the joint prior 0.03 0.5° / 0.5° (pelvis pitch against back and hips no longer drifts).
-# The same prior holds the motion cues' prediction at the previous frame's Θ (`track_step`).
 CHAIN_REGION = {"tangent_weight": 1.0, "joint_prior": 0.03}
 
 
