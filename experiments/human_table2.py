@@ -314,14 +314,13 @@ def main(argv=None):
         if 120 % f:
             raise SystemExit(f"human_table2: --fps {f} does not divide 120")
     subsets = [c.strip() for c in args.cues.split(",") if c.strip()]
+    command = "python experiments/human_table2.py " + " ".join(argv if argv is not None else sys.argv[1:])
     if args.motion_stats:
-        command = "python experiments/human_table2.py " + " ".join(argv if argv is not None else sys.argv[1:])
         text = (f"# Joint motion per tracked frame (ground truth)\n\nCommand: `{command}`  \nThe first {args.frames} "
                 "mocap frames of each motion, subsampled to each frame rate.\n\n" + motion_steps(args.motions, args.frames, fps_list))
         print(text)
         (RESULTS / "human_motion_steps.md").write_text(text)
         return text
-    command = "python experiments/human_table2.py " + " ".join(argv if argv is not None else sys.argv[1:])
     load0 = os.getloadavg()[0]
     start = time.perf_counter()
     folder = pathlib.Path(args.seq_dir) if args.seq_dir else pathlib.Path(tempfile.mkdtemp(prefix="human_table2_"))
