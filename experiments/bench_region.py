@@ -32,8 +32,7 @@ from jaxtrack.cues.levelset import (
     region_membership,
     region_params,
 )
-from jaxtrack.cues.levelset._refine import crop_camera
-from jaxtrack.geometry import make_camera, rigid_model, se3_exp
+from jaxtrack.geometry import crop_camera, make_camera, rigid_model, se3_exp
 from jaxtrack.render import make_mesh, render
 from jaxtrack.solve import Cue, SolverConfig, correspondences_from_pixels, solve_pose
 from jaxtrack.synth import SynthConfig, render_sequence
@@ -104,7 +103,28 @@ def main():
                                        undistort=False, cue=Cue.REGION, edge_normal=edge_normal if config.edge_rows else None,
                                        tangent_weight=params.tangent_weight)
     solve = jax.jit(lambda c: solve_pose(model, c, T0j, None, SolverConfig(max_steps=config.solver_steps)))
+    # One whole round as the tracker's loop runs it: the modality's `rows` on the round's render.
+    from jaxtrack.cues.levelset import LevelSetRegion, initial_state
+    from jaxtrack.cues.levelset._modality import _region_context, _RegionOnlyParams
+    from jaxtrack.solve import CueWeights
+
+    modality = LevelSetRegion(config)
+    from jaxtrack.cues.levelset import RegionProblem
+
+    problem = RegionProblem(mesh, model, jax.tree.map(lambda a: a[None], cam) if cam.K.ndim == 2 else cam, plan, config)
+    crops = jnp.asarray(img[None, y0 : y0 + h, x0 : x0 + w])
+    offs = jnp.asarray(offsets)
+    ctx = _region_context(problem, crops, offs, T0j, theta)
+    p_only = _RegionOnlyParams(params, CueWeights())
+    state0 = initial_state(1, cfg.height, cfg.width, 3 + int(config.texture), f)
+    frame = modality.start(ctx, state0, None, p_only)
+    carry = modality.round_start(ctx, state0, frame, p_only)
+    from jaxtrack.modality import Pose
+
+    round_fn = jax.jit(lambda c: modality.rows(ctx, state0, frame, c, Pose(T0j, theta), ctx.render_t, jnp.zeros((), jnp.int32),
+                                               p_only)[0].weight)
     rows = [
+        ("one round through the protocol: `LevelSetRegion.rows` (render excluded)", timed(lambda: round_fn(carry))),
         ("render into the crop", timed(lambda: rend(T0j).depth)),
         ("Φ0 = band_sdf (one band-limited jump flooding)", timed(lambda: sdf(sil))),
         ("density update (eq. 12, factor-4 grid) + data term", timed(lambda: force_fn(dens_fn(phi)))),

@@ -43,8 +43,8 @@ SHARED = pathlib.Path(os.environ.get("JAXTRACK_SHARED", pathlib.Path(__file__).r
 M3T_RUN = SHARED / "baselines" / "m3t" / "run.sh"
 M3T_BIN = pathlib.Path(os.environ.get("M3T_BASELINE_ROOT", pathlib.Path.home() / ".cache" / "m3t-baseline")) / "build" / "m3t_run_bop"
 ALL_CUES = ("region", "flow", "sift")
-STAGES = ("render", "occlusion", "flow", "SIFT (host: detect + match)", "SIFT (device: filters + assignment)",
-          "prediction solve", "segmentation", "shape matching", "refinement solve")
+STAGES_FIXED = ("frame context (crops, render at t)", "render", "host inputs (SIFT detect + match)", "prediction solve",
+                "refinement solve", "occlusion")
 GOALS = {"all_fps": 10.0, "region_fps": 30.0, "cold_s": 60.0, "warm_s": 10.0}
 
 
@@ -79,37 +79,19 @@ def _median_ms(fn, repeats: int) -> float:
 
 def stage_breakdown(tracker, state, frames_np, repeats: int) -> dict:
     """ms per call and calls per frame of each stage of `track_step`, each jitted alone on the inputs
-    of one frame (state at t, frames t+1). Mirrors `jaxtrack.track._step.track_step` and the rounds of
-    `refine_pose_region`; the whole frame (`Tracker.step`) is timed on the same inputs."""
-    import dataclasses
-
+    of one frame (state at t, frames t+1), through the modality protocol itself (no copy of the loop):
+    the frame context (crops, render at χ_t), each modality's `start`, `rows` (one refinement round),
+    `update`, the prediction and refinement solves on `fuse_rows`, and the occlusion update. The whole
+    frame (`Tracker.step`) is timed on the same inputs."""
     import equinox as eqx
     import jax
     import jax.numpy as jnp
 
-    from jaxtrack.cues.levelset import (
-        band_sdf,
-        contour_matches,
-        crop_camera,
-        feature_channels,
-        local_densities,
-        projected_boxes,
-        region_memberships,
-        segment,
-    )
+    from jaxtrack.cues.levelset import projected_boxes
     from jaxtrack.cues.occlusion import detect_occlusion, observe_texels, update_appearance
-    from jaxtrack.image import crop_window
-    from jaxtrack.render import render
-    from jaxtrack.solve import (
-        Cue,
-        CueWeights,
-        SolverConfig,
-        concatenate_correspondences,
-        correspondences_from_pixels,
-        fuse_cue_weights,
-        solve_pose,
-    )
-    from jaxtrack.track import TrackerSetup, motion_correspondences
+    from jaxtrack.modality import Pose, fuse_rows, render_crops
+    from jaxtrack.solve import JointPrior, PosePrior, SolverConfig, solve_pose
+    from jaxtrack.track._step import frame_context, modality_context
 
     config, model, dtype = tracker.config, tracker.model, tracker.dtype
     frames = tracker.check_frames(frames_np)
@@ -118,11 +100,12 @@ def stage_breakdown(tracker, state, frames_np, repeats: int) -> dict:
     params = tracker.params_for(crop_shape)
     offsets = jnp.asarray(offsets_np)
     frames_j = jnp.asarray(frames, dtype)
-    cams = crop_camera(tracker.cameras, offsets, crop_shape)
-    T_t, theta_t = state.T_world_root, state.theta
+    setup = tracker.setup()
+    config = setup.config  # "auto" resolved by the tracker
+    modalities = config.modalities()
     out = {"crop": list(crop_shape), "ms": {}, "calls": {}}
 
-    # The whole frame as the tracker runs it (host crop + SIFT + the compiled step), same inputs.
+    # The whole frame as the tracker runs it (host crop + host inputs + the compiled step), same inputs.
     motion_px = tracker.last_motion_px
 
     def whole():
@@ -134,90 +117,78 @@ def stage_breakdown(tracker, state, frames_np, repeats: int) -> dict:
     _, result, _ = tracker.step(state, frames)
     rounds = int(result.iterations)
     out["rounds"] = rounds
-    T_new, theta_new = result.T_world_root, result.theta
+    final = Pose(result.T_world_root, result.theta)
+    refined = any(not m.motion for m in modalities)
 
-    rend = eqx.filter_jit(lambda T, th: jax.vmap(lambda cam: render(tracker.mesh, cam, T, th, model, tracker.plan))(cams))
-    out["ms"]["render"] = _median_ms(lambda: rend(T_t, theta_t).depth, repeats)
-    out["calls"]["render"] = 2 + rounds if "region" in config.cues else 2
+    ctx_fn = eqx.filter_jit(lambda st, fr, off: frame_context(setup, st, fr, off, crop_shape))
+    out["ms"]["frame context (crops, render at t)"] = _median_ms(
+        lambda: jax.tree.leaves((ctx_fn(state, frames_j, offsets).crops, ctx_fn(state, frames_j, offsets).render_t)), repeats)
+    out["calls"]["frame context (crops, render at t)"] = 1
+    ctx = ctx_fn(state, frames_j, offsets)
+    rend = eqx.filter_jit(lambda c, p: render_crops(c, p).depth)
+    out["ms"]["render"] = _median_ms(lambda: rend(ctx, final), repeats)
+    final_render = config.runs_occlusion() or any(m.motion or (m.contour and m.needs_render) for m in modalities)
+    out["calls"]["render"] = int(final_render) + (rounds if refined and any(m.needs_render for m in modalities) else 0)
 
-    matches = tracker.matches(state, frames)
-    parts = []
-    for cue in ("flow", "sift"):
-        if cue not in config.cues:
-            continue
-        one = TrackerSetup(tracker.mesh, model, tracker.cameras, tracker.atlas, tracker.plan,
-                           dataclasses.replace(config, cues=(cue,)))
-        fn = eqx.filter_jit(lambda s, st, fr, m, off, p: motion_correspondences(s, st, fr, m, off, p, crop_shape)[0])
-        ms = _median_ms(lambda one=one, fn=fn: fn(one, state, frames_j, matches, offsets, params).weight, repeats)
-        name = "flow" if cue == "flow" else "SIFT (device: filters + assignment)"
-        out["ms"][name] = max(ms - out["ms"]["render"], 0.0)  # motion_correspondences renders at χ_t first
-        out["calls"][name] = 1
-        parts.append(fn(one, state, frames_j, matches, offsets, params))
-    if "sift" in config.cues:
-        times = []
-        for _ in range(repeats):
-            timings: dict = {}
-            tracker.matches(state, frames, timings)
-            times.append(timings.get("detect_s", 0.0) + timings.get("match_s", 0.0))
-        out["ms"]["SIFT (host: detect + match)"] = 1000.0 * float(np.median(times))
-        out["calls"]["SIFT (host: detect + match)"] = 1
-    motion = concatenate_correspondences(*parts) if parts else None
-    if motion is not None:
-        pred = eqx.filter_jit(lambda c: solve_pose(model, fuse_cue_weights(c, params.weights, prediction=True), T_t, theta_t,
-                                                   SolverConfig(max_steps=config.prediction_steps)).T_world_root)
-        out["ms"]["prediction solve"] = _median_ms(lambda: pred(motion), repeats)
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        host = tracker.host_inputs(state, frames)
+        times.append(time.perf_counter() - t)
+    if any(h is not None for h in host):
+        out["ms"]["host inputs (SIFT detect + match)"] = 1000.0 * float(np.median(times))
+        out["calls"]["host inputs (SIFT detect + match)"] = 1
+
+    contexts = [modality_context(ctx, setup, i) for i in range(len(modalities))]
+    data = []
+    for m, mc, s, h in zip(modalities, contexts, state.modalities, host):
+        fn = eqx.filter_jit(lambda c, s, h, p, m=m: m.start(c, s, h, p))
+        ms = _median_ms(lambda fn=fn, mc=mc, s=s, h=h: jax.tree.leaves(fn(mc, s, h, params)), repeats) if jax.tree.leaves(
+            jax.eval_shape(lambda mc=mc, s=s, h=h, m=m: m.start(mc, s, h, params))) else 0.0
+        out["ms"][f"{m.name}: start"] = ms
+        out["calls"][f"{m.name}: start"] = 1
+        data.append(fn(mc, s, h, params))
+    pred_pose = Pose(state.T_world_root, state.theta)
+    data = [m.check_prediction(mc, s, d, pred_pose, params) for m, mc, s, d in zip(modalities, contexts, state.modalities, data)]
+    motion = [i for i, m in enumerate(modalities) if m.motion]
+    T_t, theta_t = state.T_world_root, state.theta
+    if motion:
+        pred = eqx.filter_jit(lambda d: solve_pose(model, fuse_rows([modalities[i] for i in motion], d, params, prediction=True),
+                                                   T_t, theta_t, SolverConfig(max_steps=config.prediction_steps)).T_world_root)
+        out["ms"]["prediction solve"] = _median_ms(lambda: pred([data[i] for i in motion]), repeats)
         out["calls"]["prediction solve"] = 1
+    if refined:
+        ren = render_crops(ctx, final)
+        carries = [m.round_start(mc, s, d, params) for m, mc, s, d in zip(modalities, contexts, state.modalities, data)]
+        sets = []
+        for m, mc, s, d, c in zip(modalities, contexts, state.modalities, data, carries):
+            fn = eqx.filter_jit(lambda s, d, c, r, m=m, mc=mc: m.rows(mc, s, d, c, final, r, jnp.ones((), jnp.int32), params))
+            out["ms"][f"{m.name}: rows"] = 0.0 if m.motion else _median_ms(lambda fn=fn, s=s, d=d, c=c: fn(s, d, c, ren)[0].weight, repeats)
+            out["calls"][f"{m.name}: rows"] = rounds
+            sets.append(fn(s, d, c, ren)[0])
+        solve = eqx.filter_jit(lambda sets: solve_pose(
+            model, fuse_rows(modalities, sets, params), final.T_world_root, final.theta, SolverConfig(max_steps=config.region.solver_steps),
+            prior=JointPrior(final.theta, params.region.joint_prior),
+            pose_prior=PosePrior(final.T_world_root, params.pose_prior_rotation, params.pose_prior_translation)).T_world_root)
+        out["ms"]["refinement solve"] = _median_ms(lambda: solve(sets), repeats)
+        out["calls"]["refinement solve"] = rounds
+        for m, mc, s, d, c in zip(modalities, contexts, state.modalities, data, carries):
+            fn = eqx.filter_jit(lambda s, d, c, m=m, mc=mc: m.update(mc, s, d, c, final, params))
+            leaves = jax.tree.leaves(jax.eval_shape(lambda s=s, d=d, c=c, m=m, mc=mc: m.update(mc, s, d, c, final, params)))
+            if leaves:
+                out["ms"][f"{m.name}: update"] = _median_ms(lambda fn=fn, s=s, d=d, c=c: jax.tree.leaves(fn(s, d, c)), repeats)
+                out["calls"][f"{m.name}: update"] = 1
 
-    crops_t1 = jax.vmap(crop_window, in_axes=(0, 0, None))(frames_j, offsets, crop_shape)
-    if "region" in config.cues:
-        rc, rp = config.region, params.region
-        f = rc.density_factor
-
-        # The feature channels are computed once per refinement, before its rounds: not part of a round.
-        features = jax.jit(jax.vmap(lambda im: feature_channels(im, rc.texture).astype(dtype)))(crops_t1)
-
-        def segmentation(features, T, th):
-            def one(cam, feats):
-                ren = render(tracker.mesh, cam, T, th, model, tracker.plan)
-                phi0 = band_sdf(ren.face_id >= 0).astype(dtype)
-                w_obj, w_bg = region_memberships(phi0, rp.density_band)
-                dens = local_densities(feats, w_obj, rp.rho, rp.kappa, rp.sigma_min, f, weight_background=w_bg)
-                phi, _ = segment(feats, phi0, phi0, dens, rp, rc)
-                return phi0, phi, ren
-
-            return jax.vmap(one)(cams, features)
-
-        seg = eqx.filter_jit(segmentation)
-        phi0, phi, ren = seg(features, T_new, theta_new)
-        # segmentation = Φ0 + densities + level-set iterations + new densities, without the render inside it
-        out["ms"]["segmentation"] = max(_median_ms(lambda: seg(features, T_new, theta_new)[1], repeats) - out["ms"]["render"], 0.0)
-        match = eqx.filter_jit(lambda a, b, r: jax.vmap(
-            lambda p0, p, s, pm, pa: contour_matches(p0, p, s, pm, pa, rp, rc.capacity, rc.matching))(a, b, r.face_id >= 0, r.p_model, r.part_id))
-        out["ms"]["shape matching"] = _median_ms(lambda: match(phi0, phi, ren)[4], repeats)
-        _, target, p_model, part, weight, edge_normal = match(phi0, phi, ren)
-        C = offsets.shape[0]
-        cam_index = jnp.broadcast_to(jnp.arange(C, dtype=jnp.int32)[:, None], weight.shape)
-        target = target + offsets[:, None, ::-1].astype(dtype)
-        corr = correspondences_from_pixels(tracker.cameras, target.reshape(-1, 2), cam_index.reshape(-1), p_model.reshape(-1, 3),
-                                           part.reshape(-1), weight.reshape(-1), undistort=False, cue=Cue.REGION,
-                                           edge_normal=edge_normal.reshape(-1, 2) if rc.edge_rows else None,
-                                           tangent_weight=rp.tangent_weight)
-        if motion is not None:
-            corr = fuse_cue_weights(concatenate_correspondences(corr, motion), CueWeights())
-        solve = eqx.filter_jit(lambda c: solve_pose(model, c, T_new, theta_new, SolverConfig(max_steps=rc.solver_steps)).T_world_root)
-        out["ms"]["refinement solve"] = _median_ms(lambda: solve(corr), repeats)
-        for name in ("segmentation", "shape matching", "refinement solve"):
-            out["calls"][name] = rounds
-
-    if config.occlusion:
-        def occlusion(images, T, th):
-            ren = jax.vmap(lambda cam: render(tracker.mesh, cam, T, th, model, tracker.plan))(cams)
-            obs = observe_texels(tracker.atlas, images, ren.depth, cams, T, params.occlusion, th, model, config.occlusion_config)
+    if config.runs_occlusion():
+        def occlusion(c, T, th):
+            ren = render_crops(c, Pose(T, th))
+            obs = observe_texels(tracker.atlas, c.crops, ren.depth, c.crop_cameras, T, params.occlusion, th, model,
+                                 config.occlusion_config)
             occ = detect_occlusion(tracker.atlas, state.appearance, obs, ren, params.occlusion, config.occlusion_config)
             return update_appearance(state.appearance, obs, occ.occluded, params.occlusion, hold_new=occ.near_occlusion)
 
         occ_fn = eqx.filter_jit(occlusion)
-        ms = _median_ms(lambda: jax.tree.leaves(occ_fn(crops_t1, T_new, theta_new))[0], repeats)
+        ms = _median_ms(lambda: jax.tree.leaves(occ_fn(ctx, final.T_world_root, final.theta))[0], repeats)
         out["ms"]["occlusion"] = max(ms - out["ms"]["render"], 0.0)  # its render at χ_{t+1} is counted under render
         out["calls"]["occlusion"] = 1
     return out
@@ -254,7 +225,9 @@ def worker(spec: dict) -> dict:
     T_cam0_world = np.asarray(view0.T_cam_world, np.float64)
     T_world_gt = np.einsum("ij,fjk->fik", np.linalg.inv(T_cam0_world), gt)
     cues = ALL_CUES if spec["cues"] == "all" else ("region",)
-    tracker = Tracker(load_mesh(seq.model_paths[1]), rig, config=TrackerConfig(cues=cues))
+    region = spec.get("region")
+    config = TrackerConfig(cues=cues) if region is None else TrackerConfig(cues=cues, region_modality=region)
+    tracker = Tracker(load_mesh(seq.model_paths[1]), rig, config=config)
 
     def frames(k):
         return np.stack([seq.views[c].read_frame(k) for c in views])
@@ -452,7 +425,8 @@ def report(args, command, width_px, size, rows, m3t, load_start, load_end, elaps
             f"| stage | {header} |",
             "|---|" + "---:|" * len(with_stages),
         ]
-        for stage in STAGES:
+        named = sorted({k for _, s in with_stages for k in s["ms"] if k not in STAGES_FIXED})
+        for stage in STAGES_FIXED[:4] + tuple(named) + STAGES_FIXED[4:]:
             cells = []
             for _, s in with_stages:
                 if stage in s["ms"]:
@@ -514,6 +488,8 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true",
                     help="smoke run in this process: region, 1 camera, occluded-box at 96x72 (crop = whole frame), 4 frames")
     ap.add_argument("--configs", default="region:1,all:1,all:2,all:4", help="cue set (region|all) : cameras, comma-separated")
+    ap.add_argument("--region", default=None,
+                    help="the region modality of 'region' (levelset | lines; default: TrackerConfig's)")
     ap.add_argument("--frames", type=int, default=8, help="frames of the sequence (the first initialises, the second compiles)")
     ap.add_argument("--scale", type=float, default=1.0, help="image scale (1 = 640x480, f = 700)")
     ap.add_argument("--preset", default=None, help="a jaxtrack.synth preset instead of the textured box")
@@ -548,7 +524,7 @@ def main(argv=None):
                 continue
             cache = work / f"xla_{cues}_{cams}"  # a fresh, empty on-disk cache per configuration
             spec = {"sequence": str(seq), "cues": cues, "cameras": cams, "cache_dir": str(cache), "repeats": args.repeats,
-                    "breakdown": str(cams) in args.breakdown_cameras.split(",")}
+                    "breakdown": str(cams) in args.breakdown_cameras.split(","), "region": args.region}
             t = time.perf_counter()
             if args.quick:  # in this process: no fresh interpreter, no cache, no warm run
                 cold, warm = worker(dict(spec, mode="cold", cache_dir=None, launched=time.time())), None

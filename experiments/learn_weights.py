@@ -120,7 +120,7 @@ def _track(problem: Problem, start: int, stop: int, log_w: np.ndarray, tangents:
     import jax.numpy as jnp
 
     from jaxtrack.cues.levelset import projected_boxes
-    from jaxtrack.track import TrackerSetup, default_params, pose_errors, success_mask
+    from jaxtrack.track import default_params, pose_errors, success_mask
 
     tr = problem.tracker
     program = jvp_program()
@@ -145,7 +145,7 @@ def _track(problem: Problem, start: int, stop: int, log_w: np.ndarray, tangents:
         matches = tr.matches(state, frames)
         params = default_params(tr.model, crop_shape, tr.dtype)
         t = time.perf_counter()
-        setup = TrackerSetup(tr.mesh, tr.model, tr.cameras, tr.atlas, tr.plan, tr.config)
+        setup = tr.setup()
         diff, T, static, status, dstate, dT = program(setup, diff, static, dstate, jnp.asarray(frames), matches,
                                                       jnp.asarray(offsets), params, lw, crop_shape)
         jax.block_until_ready(dT)
@@ -205,7 +205,7 @@ def reverse_mode_probe(problem: Problem) -> str:
     import jax
     import jax.numpy as jnp
 
-    from jaxtrack.track import TrackerSetup, default_params, track_step
+    from jaxtrack.track import default_params, track_step
 
     tr = problem.tracker
     state = tr.start(problem.frames(0), problem.T_world_gt[0])
@@ -213,7 +213,7 @@ def reverse_mode_probe(problem: Problem) -> str:
     offsets, crop_shape = tr.crop(np.asarray(state.T_world_root), np.asarray(state.theta))
     matches = tr.matches(state, frames)
     params = default_params(tr.model, crop_shape, tr.dtype)
-    setup = TrackerSetup(tr.mesh, tr.model, tr.cameras, tr.atlas, tr.plan, tr.config)
+    setup = tr.setup()
 
     def loss(lw):
         p = with_factors(params, jnp.exp(lw[0]), jnp.exp(lw[1]))

@@ -56,13 +56,17 @@ def m3t_available() -> bool:
 
 
 def parse_subsets(text: str) -> tuple[str, ...]:
-    """'region,flow+sift' → ('region', 'flow+sift'), each in the canonical cue order."""
+    """'region,flow+sift' → ('region', 'flow+sift'), each in the registry's order (region first); any
+    registered modality (`jaxtrack.cli.cue_choices`) may be named."""
+    from jaxtrack.cli import cue_choices
+
+    choices = cue_choices()
     out = []
     for item in text.split(","):
         cues = [c.strip() for c in item.split("+") if c.strip()]
-        if not cues or any(c not in ("region", "flow", "sift") for c in cues) or len(set(cues)) != len(cues):
-            raise SystemExit(f"track_presets: --cues entry {item!r} must join region, flow, sift with '+'")
-        out.append("+".join(c for c in ("region", "flow", "sift") if c in cues))
+        if not cues or any(c not in choices for c in cues) or len(set(cues)) != len(cues):
+            raise SystemExit(f"track_presets: --cues entry {item!r} must join modalities from {', '.join(choices)} with '+'")
+        out.append("+".join(c for c in choices if c in cues))
     return tuple(out)
 
 

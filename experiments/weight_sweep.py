@@ -155,7 +155,7 @@ def track_batch(problem: Problem, flow: np.ndarray, sift: np.ndarray, reset: boo
 
     from jaxtrack import Status
     from jaxtrack.cues.levelset import projected_boxes
-    from jaxtrack.track import TrackerSetup, default_params, success_mask, track_step
+    from jaxtrack.track import default_params, success_mask, track_step
 
     tr = problem.tracker
     B = len(flow)
@@ -188,7 +188,7 @@ def track_batch(problem: Problem, flow: np.ndarray, sift: np.ndarray, reset: boo
         before = eqx.debug.get_num_traces(track_step)
         t1 = time.perf_counter()
         for _ in range(3):
-            setup = TrackerSetup(tr.mesh, tr.model, tr.cameras, tr.atlas, tr.plan, tr.config)
+            setup = tr.setup()
             new, res = step(setup, states, jnp.asarray(frames), matches, jnp.asarray(np.stack(offsets)), params, crop_shape)
             over = np.asarray(res.status) == Status.RENDER_OVERFLOW
             if not over.any():

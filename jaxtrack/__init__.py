@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING as _TYPE_CHECKING
 from . import cues as cues
 from . import geometry as geometry
 from . import image as image
+from . import modality as modality
 from . import render as render
 from . import solve as solve
 from . import track as track
@@ -26,9 +27,12 @@ from .geometry import part_transforms as part_transforms
 from .geometry import rigid_model as rigid_model
 from .geometry import se3_exp as se3_exp
 from .geometry import se3_log as se3_log
+from .modality import Modality as Modality
+from .modality import register_modality as register_modality
 from .solve import Correspondences as Correspondences
 from .solve import Cue as Cue
 from .solve import JointPrior as JointPrior
+from .solve import PosePrior as PosePrior
 from .solve import PoseSolution as PoseSolution
 from .solve import PoseStatus as PoseStatus
 from .solve import SolverConfig as SolverConfig

@@ -234,19 +234,49 @@ def _cmd_flow(args) -> int:
     return 0
 
 
-CUE_CHOICES = ("region", "flow", "sift")
+CUE_CHOICES = ("region", "flow", "sift")  # the default: all of the paper's cues
+
+
+def cue_choices() -> tuple[str, ...]:
+    """Every name `--cues` accepts: "region" (the configured region modality) and each registered modality."""
+    import jaxtrack.track  # noqa: F401  (registers the built-in modalities)
+    from jaxtrack.modality import modality_names
+
+    return ("region",) + tuple(n for n in modality_names() if n != "region")
+
+
+def region_choices() -> tuple[str, ...]:
+    """The registered region modalities (`--region`): those whose rows count as contour evidence."""
+    import jaxtrack.track  # noqa: F401  (registers the built-in modalities)
+    from jaxtrack.modality import modality_class, modality_names
+
+    return ("auto",) + tuple(n for n in modality_names() if modality_class(n).contour)
 
 
 def _cue_list(text: str) -> tuple[str, ...]:
-    """An argparse type: comma-separated cue names, a non-empty subset of region, flow, sift."""
+    """An argparse type: comma-separated cue names, a non-empty subset of `cue_choices()`."""
     cues = tuple(c.strip().lower() for c in text.split(",") if c.strip())
-    bad = [c for c in cues if c not in CUE_CHOICES]
+    choices = cue_choices()
+    bad = [c for c in cues if c not in choices]
     if bad or not cues:
-        raise argparse.ArgumentTypeError(f"unknown cue {bad[0]!r} (choose from {', '.join(CUE_CHOICES)})" if bad
+        raise argparse.ArgumentTypeError(f"unknown cue {bad[0]!r} (choose from {', '.join(choices)})" if bad
                                          else f"expected cue names, got {text!r}")
     if len(set(cues)) != len(cues):
         raise argparse.ArgumentTypeError(f"a cue is named twice in {text!r}")
     return cues
+
+
+def _prior_pair(text: str) -> tuple[float, ...]:
+    """An argparse type: 'R,T[,RA,TA,F]', numbers ≥ 0 (one number sets R and T)."""
+    try:
+        values = [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected R,T[,RA,TA,F] (numbers ≥ 0), got {text!r}") from None
+    if len(values) == 1:
+        values = values * 2
+    if len(values) not in (2, 5) or not all(np.isfinite(v) and v >= 0 for v in values):
+        raise argparse.ArgumentTypeError(f"expected R,T or R,T,RA,TA,F (finite numbers ≥ 0), got {text!r}")
+    return tuple(values)
 
 
 def _index_list(text: str) -> list[int]:
@@ -386,7 +416,9 @@ def _prepare_tracking(args, seq, out):
                                    pose_vertices=pose_vertices)
     kwargs = {"cues": args.cues, "cameras": views, "obj_id": obj_id, "init_pose": init_pose,
               "reset_on_failure": args.reset_on_failure, "max_frames": args.max_frames, "progress": not args.quiet,
-              "on_frame": recorder, **({"joint_limits": True} if args.joint_limits else {})}
+              "on_frame": recorder, **({"joint_limits": True} if args.joint_limits else {}),
+              **({"pose_prior": args.pose_prior} if getattr(args, "pose_prior", None) is not None else {}),
+              **({"region": args.region} if getattr(args, "region", None) is not None else {})}
     return kwargs, recorder
 
 
@@ -628,7 +660,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     track.add_argument("sequence", metavar="SEQ", help="the sequence folder")
     track.add_argument("-o", "--out", help="results CSV (default: ./<SEQ name>-results.csv)")
-    track.add_argument("--cues", type=_cue_list, default=CUE_CHOICES, help="comma-separated subset of region,flow,sift (default all)")
+    track.add_argument("--cues", type=_cue_list, default=CUE_CHOICES, help="comma-separated modalities: region (the configured region modality), flow, sift, levelset or any "
+                       "registered modality (default region,flow,sift)")
     track.add_argument("--cameras", type=_index_list, help="comma-separated camera views, e.g. 0,1 (default all)")
     track.add_argument("--obj-id", dest="obj_id", type=_number(int, 0), help="the object (default: the smallest id with a mesh)")
     track.add_argument("--video", help="overlay: an .mp4/.avi/.mov/.mkv file, or else a folder of PNGs (views side by side)")
@@ -641,6 +674,13 @@ def build_parser() -> argparse.ArgumentParser:
     track.add_argument("--max-frames", dest="max_frames", metavar="N", type=_number(int, 1), help="track only the first N frames")
     track.add_argument("--joint-limits", dest="joint_limits", action="store_true",
                        help="articulated (URDF) models: keep the joints within the URDF's limits (off: the method uses no priors)")
+    track.add_argument("--region", choices=region_choices(), default=None,
+                       help="the region modality that 'region' in --cues means (default auto: lines for a rigid object, "
+                       "levelset for a URDF chain)")
+    track.add_argument("--pose-prior", dest="pose_prior", metavar="R,T[,RA,TA,F]", type=_prior_pair,
+                       help="the refinement's pose prior: relative stiffnesses (rotation, translation), optionally "
+                       "absolute ones and F = 1 to pull toward each round's start (M3T) instead of the prediction "
+                       "(default: jaxtrack.track.DEFAULT_POSE_PRIOR)")
     track.add_argument("--no-cache", action="store_true", help="do not use the on-disk compilation cache")
     track.add_argument("--quiet", action="store_true", help="no progress bar")
     track.set_defaults(func=_cmd_track)

@@ -65,7 +65,7 @@ class _FakeTracker:
         phi[:, 10:30, 10:40] = 1.0
         result = types.SimpleNamespace(
             T_world_root=T, theta=np.zeros(0), status=int(getattr(sequence_module.Status, STATUS[self.k])),
-            confidence=0.9 if STATUS[self.k] == "OK" else 0.2, counts=np.full((self.num_cameras, 3), 7), region_phi=phi,
+            confidence=0.9 if STATUS[self.k] == "OK" else 0.2, counts=np.full((self.num_cameras, len(self.cues)), 7), region_phi=phi,
         )
         info = {"timings": {"step_s": 0.001}, "offsets": np.tile([[20, 30]], (self.num_cameras, 1)), "crop_shape": (40, 50)}
         return types.SimpleNamespace(T_world_root=T, theta=np.zeros(0)), result, info
@@ -241,7 +241,7 @@ def test_track_refuses_bad_input_before_tracking(seq_dir, fake, tmp_path, capsys
 @pytest.mark.parametrize(
     "argv, message",
     [
-        (["--cues", "region,colour"], "argument --cues: unknown cue 'colour' \\(choose from region, flow, sift\\)"),
+        (["--cues", "region,colour"], "argument --cues: unknown cue 'colour' \\(choose from region, levelset, lines, flow, sift"),
         (["--cues", "flow,flow"], "argument --cues: a cue is named twice"),
         (["--cameras", "0,-1"], "argument --cameras: expected distinct view indices ≥ 0"),
         (["--cameras", "a"], "argument --cameras: expected comma-separated view indices"),
@@ -411,7 +411,7 @@ def test_real_track_and_eval_end_to_end(seq_dir, tmp_path, capsys):
     assert [r[1] for r in rows] == [0, 1] and all(np.all(np.isfinite(r[4])) for r in rows)
     assert all(0.0 <= r[3] <= 1.0 for r in rows)
     records = [json.loads(line) for line in out.with_name("real.frames.jsonl").read_text().splitlines()]
-    assert records[1]["counts"]["0"]["region"] > 0 and records[1]["counts"]["0"]["flow"] == 0
+    assert records[1]["counts"]["0"]["region"] > 0 and set(records[1]["counts"]["0"]) == {"region"}  # configured cues only
     assert len(_video_frames(tmp_path / "real.mp4")) == 2
     assert main(["eval", str(out), str(seq_dir)]) == 0
     text = capsys.readouterr().out

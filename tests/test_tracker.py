@@ -36,7 +36,9 @@ def sequence():
 
 @pytest.fixture(scope="session")
 def tracker(sequence):
-    return Tracker(sequence["mesh"], sequence["camera"], config=TrackerConfig())
+    """The paper's configuration: the dense level set with flow and SIFT (the default for rigid objects is the
+    line modality, tested on the tea box below)."""
+    return Tracker(sequence["mesh"], sequence["camera"], config=TrackerConfig(region_modality="levelset"))
 
 
 @pytest.fixture(scope="session")
@@ -121,7 +123,7 @@ def test_vmap_over_cue_weights_equals_separate_runs(sequence, tracker, tracked):
     """One compiled step maps over 4 weight settings of the three cues; each equals its own run through
     `Tracker.step` (whose compiled step the `tracked` fixture already built: only the batched program is
     new here)."""
-    from jaxtrack.track import TrackerSetup, default_params, track_step
+    from jaxtrack.track import default_params, track_step
 
     state = tracker.start(sequence["images"][0], sequence["T"][0])
     frames = tracker.check_frames(sequence["images"][1])
@@ -133,7 +135,7 @@ def test_vmap_over_cue_weights_equals_separate_runs(sequence, tracker, tracked):
     batched = eqx.tree_at(lambda p: (p.weights.flow, p.weights.sift), base, (flow, sift))
     axes = eqx.tree_at(lambda p: (p.weights.flow, p.weights.sift), jax.tree.map(lambda _: None, base), (0, 0),
                        is_leaf=lambda x: x is None)
-    setup = TrackerSetup(tracker.mesh, tracker.model, tracker.cameras, tracker.atlas, tracker.plan, tracker.config)
+    setup = tracker.setup()
     swept = eqx.filter_jit(jax.vmap(track_step, in_axes=(None, None, None, None, None, axes, None)))
     _, many = swept(setup, state, jnp.asarray(frames), matches, jnp.asarray(offsets), batched, crop_shape)
     poses = []
@@ -210,12 +212,12 @@ def test_tracks_a_two_joint_arm_from_urdf_with_two_cameras(tmp_path):
 
 @pytest.mark.heavy
 def test_tracks_the_teabox_on_real_video(shared_data):
-    """Real video (ViSP tea box, the first 16 of its 49 frames of 640x480) with the default configuration,
-    all cues.
+    """The rendered ViSP tea box (the first 16 of its 49 frames of 640x480) with the default configuration:
+    correspondence lines + flow + SIFT.
 
-    Bounds from measurement on this machine (db84e47, all cues, default parameters; all 49 frames: every
-    frame within 0.70° / 3.36 mm, mean 0.59° and 2.46 mm; the first 16: within 0.65° / 3.36 mm, mean
-    0.51° and 2.67 mm; DLR M3T on the 49 frames: 0.32° / 2.11 mm mean with ORB keypoints, 0.85° / 2.09 mm
+    Bounds from measurement on this machine (all 49 frames, `experiments/real_sequences.py`: mean 0.45° and
+    1.11 mm, every frame within 5 cm / 5°; the level set with flow and SIFT before it: mean 0.59° / 2.46 mm,
+    every frame within 0.70° / 3.36 mm; DLR M3T: 0.32° / 2.11 mm mean with ORB keypoints, 0.85° / 2.09 mm
     region only), with a margin. The whole sequence is in the README's tea-box table (`jaxtrack track`).
     """
     from jaxtrack.io import read_sequence
@@ -230,3 +232,29 @@ def test_tracks_the_teabox_on_real_video(shared_data):
     assert rot.max() < 1.0 and trans.max() < 5.0, (rot.max(), trans.max())
     assert rot[1:].mean() < 0.8 and trans[1:].mean() < 3.5, (rot[1:].mean(), trans[1:].mean())
     assert np.all(run.counts[1:, 0, :2] > 0)  # region and flow rows in every frame
+
+
+@pytest.mark.heavy
+def test_line_modality_tracks_the_teabox_in_one_compilation(shared_data):
+    """Region only on correspondence lines (a 642-view model), the tea box's first 16 frames: no crop size
+    classes (whole frames), one trace for every frame, rows tagged LINES, a confidence from the lines.
+
+    Bounds from measurement (all 49 frames with the default 2562-view model, `experiments/real_sequences.py`:
+    0.22° / 1.07 mm mean, every frame within 5 cm / 5°; DLR M3T 0.70° / 2.1 mm region only), with a margin.
+    """
+    from jaxtrack.cues.lines import LineRegion
+    from jaxtrack.io import read_sequence
+    from jaxtrack.track import pose_errors, track_sequence
+
+    seq = read_sequence(shared_data / "sequences" / "visp_teabox")
+    before = eqx.debug.get_num_traces(jt.track._step.track_step)
+    run = track_sequence(seq, config=TrackerConfig(cues=(LineRegion(subdivisions=3),)), progress=False, max_frames=16)
+    assert eqx.debug.get_num_traces(jt.track._step.track_step) - before == 1
+    assert all(c == (480, 640) for c in run.crops[1:])
+    rot, trans = pose_errors(run.T_cam_obj(0), seq.views[0].T_cam_obj[run.obj_id][:16])
+    print(f"lines, tea box 16 frames: rot mean {rot[1:].mean():.2f} max {rot.max():.2f}°, trans mean "
+          f"{trans[1:].mean():.2f} max {trans.max():.2f} mm, confidence {run.confidence[1:].round(2)}")
+    assert rot.max() < 0.8 and trans.max() < 3.0, (rot.max(), trans.max())
+    assert rot[1:].mean() < 0.5 and trans[1:].mean() < 2.0, (rot[1:].mean(), trans[1:].mean())
+    assert run.counts.shape[1:] == (1, 1) and np.all(run.counts[1:, 0, 0] > 50)
+    assert all(s == "OK" for s in run.status) and np.all(run.confidence[1:] > 0.8)

@@ -2,6 +2,7 @@
 
 from ._camera import Camera as Camera
 from ._camera import backproject_pixels as backproject_pixels
+from ._camera import crop_camera as crop_camera
 from ._camera import make_camera as make_camera
 from ._camera import pixel_rays_world as pixel_rays_world
 from ._camera import pixels_to_normalized as pixels_to_normalized

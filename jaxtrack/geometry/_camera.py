@@ -199,3 +199,14 @@ def pixel_rays_world(camera: Camera, px: jax.Array):
     d_world = d_world / jnp.linalg.norm(d_world, axis=-1, keepdims=True)
     origin = jnp.broadcast_to(camera.center_world, d_world.shape)
     return origin, d_world
+
+
+def crop_camera(camera: Camera, offset, crop_shape: tuple[int, int]) -> Camera:
+    """The camera seeing only the crop at `offset` = (..., 2) (y0, x0): principal point shifted (jittable).
+
+    The crop geometry of the tracker in one place: every modality and the renderer see a crop of a
+    static size class through this camera; pixels of the crop plus (x0, y0) are full-frame pixels.
+    """
+    K = camera.K.at[..., 0, 2].add(-offset[..., 1].astype(camera.K.dtype))
+    K = K.at[..., 1, 2].add(-offset[..., 0].astype(camera.K.dtype))
+    return Camera(K, camera.T_cam_world, camera.dist, width=crop_shape[1], height=crop_shape[0])

@@ -15,4 +15,5 @@ from ._raster import face_extents as face_extents
 from ._raster import merge_plans as merge_plans
 from ._raster import plan_raster as plan_raster
 from ._raster import render as render
+from ._raster import replan as replan
 from ._raster import tile_demand as tile_demand

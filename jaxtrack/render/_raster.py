@@ -461,6 +461,40 @@ def _render_body(mesh, camera, T_world_root, theta, model, plan):
 _render_jit = eqx.filter_jit(_render_body)
 
 
+def replan(
+    old: RasterPlan | None,
+    mesh: Mesh,
+    cameras: Camera,
+    T_world_root: ArrayLike,
+    theta: ArrayLike | None = None,
+    model: KinematicModel | None = None,
+    attempt: int = 0,
+    cull_backfaces: bool = False,
+    base_margin: float = 2.0,
+) -> RasterPlan:
+    """Host helper: the raster plan for a pose in every camera of a rig, merged with `old` (never shrinks).
+
+    The one place every host class (`Renderer`, `RegionRefiner`, `Tracker`) plans the rasteriser: face
+    extents and tile demand per camera, with a margin of `base_margin` · 1.5^attempt (each re-plan after
+    an overflow widens it, so a drifting object settles after a few compilations instead of re-planning
+    every few frames).
+
+    Args:
+        old: the plan in use (None at the start); cameras: one camera or a stacked rig.
+        attempt: how many plans were made before (0 for the first).
+    """
+    rig = cameras if cameras.K.ndim == 3 else jax.tree.map(lambda a: a[None], cameras)
+    extents, tiles = [], []
+    for c in range(rig.K.shape[0]):
+        cam = jax.tree.map(lambda a, c=c: a[c], rig)
+        args = (mesh, cam, T_world_root, theta, model, cull_backfaces)
+        extents.append(np.asarray(face_extents(*args)))
+        tiles.append(tile_demand(*args))
+    new = plan_raster(np.stack(extents), margin=base_margin * 1.5**attempt, cull_backfaces=cull_backfaces,
+                      tiles=np.asarray([t[1] for t in tiles]))
+    return new if old is None else merge_plans(old, new)
+
+
 class Renderer:
     """Host-side convenience: a jitted `render` of one mesh and camera that plans its own capacities.
 
@@ -478,14 +512,9 @@ class Renderer:
         self.compilations = 0
 
     def _replan(self, T_world_root, theta):
-        args = (self.mesh, self.camera, T_world_root, theta, self.model, self.cull_backfaces)
-        extents = face_extents(*args)
-        _, tiles = tile_demand(*args)
-        # Each re-plan widens the margin (1.3, 1.95, 2.9, ...): a drifting object settles after a
-        # few compilations instead of re-planning every few frames.
-        margin = 1.3 * 1.5**self.compilations
-        new = plan_raster(extents, margin=margin, cull_backfaces=self.cull_backfaces, tiles=tiles)
-        self.plan = new if self.plan is None else merge_plans(self.plan, new)
+        # Margins 1.3, 1.95, 2.9, ... (`replan`): a drifting object settles after a few compilations.
+        self.plan = replan(self.plan, self.mesh, self.camera, T_world_root, theta, self.model, self.compilations,
+                           self.cull_backfaces, base_margin=1.3)
         self.compilations += 1
 
     def __call__(self, T_world_root: ArrayLike, theta: ArrayLike | None = None, throw: bool = True) -> RenderOutput:

@@ -9,6 +9,7 @@ from ._correspondences import pad_rows as pad_rows
 from ._fusion import CueWeights as CueWeights
 from ._fusion import fuse_cue_weights as fuse_cue_weights
 from ._pose_solver import JointPrior as JointPrior
+from ._pose_solver import PosePrior as PosePrior
 from ._pose_solver import PoseSolution as PoseSolution
 from ._pose_solver import PoseStatus as PoseStatus
 from ._pose_solver import SolverConfig as SolverConfig

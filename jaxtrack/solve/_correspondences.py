@@ -34,6 +34,7 @@ class Cue(enum.IntEnum):
     REGION = 1  # contour matches of the level-set segmentation (eq. 14-15)
     FLOW = 2  # optical flow (eq. 6-8)
     SIFT = 3  # SIFT keypoint matches
+    LINES = 4  # correspondence lines across the model contour (the sparse region modality)
 
 
 class Correspondences(eqx.Module):

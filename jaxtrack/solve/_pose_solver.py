@@ -24,6 +24,7 @@ from ..geometry import (
     KinematicModel,
     part_transforms,
     point_line_residual,
+    se3_adjoint,
     se3_exp,
     se3_inverse,
     se3_log,
@@ -174,6 +175,58 @@ def _prior_stiffness(H: jax.Array, strength: jax.Array) -> jax.Array:
     return jax.lax.stop_gradient(strength * jnp.mean(joint_diag))
 
 
+class PosePrior(eqx.Module):
+    """Tikhonov regularisation of the root pose toward an anchor (M3T's prior toward the previous pose).
+
+    Adds k_t |v|² + k_r |ω|² to eq. 4, where (v, ω) = log(T_anchor⁻¹ T_world_root) is the root's motion
+    from the anchor in the anchor's own (model) frame: a rotation about the model origin costs no
+    translation. The stiffnesses are relative, as the `JointPrior`'s: k_t = `translation` · the mean
+    translation diagonal and k_r = `rotation` · the mean rotation diagonal of the data's normal
+    equations at the start of the solve (in that model frame), so a direction the data observe well
+    barely feels the prior while a weakly observed one (the depth of a silhouette, the spin of a round
+    object) stops random-walking. Unit-free: independent of the number of rows, their weights and mm.
+
+    `rotation_abs` / `translation_abs` add absolute stiffnesses (per rad², per mm², in the units of the
+    weighted residual): M3T's Tikhonov 1000 / 30000 (rad, m) on rows weighted in pixels are 1000 / 0.03
+    here for rows weighted as `jaxtrack.cues.lines` weighs them (per px², converted to mm at the point).
+
+    Attributes:
+        T_anchor: (4, 4) the pose the root is pulled toward (model → world).
+        rotation: scalar ≥ 0, relative rotation stiffness (0: none).
+        translation: scalar ≥ 0, relative translation stiffness (0: none).
+        rotation_abs, translation_abs: scalars ≥ 0, absolute stiffnesses (default 0).
+    """
+
+    T_anchor: jax.Array
+    rotation: jax.Array
+    translation: jax.Array
+    rotation_abs: jax.Array = eqx.field(default_factory=lambda: jnp.zeros(()))
+    translation_abs: jax.Array = eqx.field(default_factory=lambda: jnp.zeros(()))
+
+
+def _root_prior_jacobian(T_root: jax.Array, T_anchor: jax.Array) -> jax.Array:
+    """d log(T_anchor⁻¹ exp(δ̂) T_root) / dδ at δ = 0 (6, 6), exact (≈ Ad(T_root⁻¹) near the anchor): the
+    Gauss-Newton steps then converge to the stationary point of the residual that implicit
+    differentiation assumes."""
+    return jax.jacfwd(lambda d: _root_prior_error(se3_exp(d) @ T_root, T_anchor))(jnp.zeros((6,), T_root.dtype))
+
+
+def _root_prior_error(T_root: jax.Array, T_anchor: jax.Array) -> jax.Array:
+    """(6,) (v, ω) = log(T_anchor⁻¹ T_root), the root's motion from the anchor in the model frame."""
+    return se3_log(se3_inverse(T_anchor) @ T_root)
+
+
+def _root_prior_stiffness(H: jax.Array, T_root: jax.Array, prior: PosePrior) -> jax.Array:
+    """(6,) k per body-frame root direction from the data's root block of H (left-increment chart)."""
+    A = se3_adjoint(T_root)  # δ = Ad(T) δ_body
+    Hb = A.T @ H[:6, :6] @ A
+    d = jax.lax.stop_gradient(jnp.diagonal(Hb))  # the scale; the strengths keep their derivatives
+    k_t = prior.translation * jnp.mean(d[:3]) + prior.translation_abs
+    k_r = prior.rotation * jnp.mean(d[3:]) + prior.rotation_abs
+    k = jnp.concatenate([jnp.broadcast_to(k_t, (3,)), jnp.broadcast_to(k_r, (3,))])
+    return jnp.where(jnp.isfinite(k) & (k > 0), k, 0.0)
+
+
 class PoseProblem(eqx.Module):
     """The data of one solve (the `args` of the residual and of the iterations).
 
@@ -184,6 +237,7 @@ class PoseProblem(eqx.Module):
         sqrt_weight: (N, 2) √w per plane (the row's weight times its plane weight), zero for padding.
         normals, offsets: (N, 2, 3), (N, 2) the two planes through each line (`line_planes`).
         prior_theta, prior_stiffness: (J,) anchor and scalar k of the `JointPrior` (k = 0: none).
+        root_anchor, root_stiffness: (4, 4) anchor and (6,) k of the `PosePrior` (k = 0: none).
     """
 
     model: KinematicModel
@@ -194,16 +248,22 @@ class PoseProblem(eqx.Module):
     offsets: jax.Array
     prior_theta: jax.Array
     prior_stiffness: jax.Array
+    root_anchor: jax.Array
+    root_stiffness: jax.Array
+    has_root_prior: bool = eqx.field(static=True, default=False)
 
 
 def _weighted_residual(y: jax.Array, problem: PoseProblem) -> jax.Array:
     """Chart residual: y = (δ, Θ) with T_world_root = exp(δ̂) T_init; plane form of eq. 4 (2N,), then
-    the joint prior's J rows √k (θ − θ̄)."""
+    the joint prior's J rows √k (θ − θ̄) and the pose prior's 6 rows √k ⊙ log(T_anchor⁻¹ T_root)."""
     T_root = se3_exp(y[:6]) @ problem.T_init
     corr = problem.corr
     s = plane_residuals(problem.model, T_root, y[6:], corr.p_model, corr.part, problem.normals, problem.offsets)
     prior = _safe_sqrt(problem.prior_stiffness) * (y[6:] - problem.prior_theta)
-    return jnp.concatenate([(s * problem.sqrt_weight).reshape(-1), prior])
+    if not problem.has_root_prior:
+        return jnp.concatenate([(s * problem.sqrt_weight).reshape(-1), prior])
+    root = _safe_sqrt(problem.root_stiffness) * _root_prior_error(T_root, problem.root_anchor)
+    return jnp.concatenate([(s * problem.sqrt_weight).reshape(-1), prior, root])
 
 
 def _gauss_newton_iterate(y0: jax.Array, problem: PoseProblem, config: SolverConfig):
@@ -223,6 +283,13 @@ def _gauss_newton_iterate(y0: jax.Array, problem: PoseProblem, config: SolverCon
         H, g, cost = plane_normal_equations(
             problem.model, T_root, theta, corr.p_model, corr.part, problem.normals, problem.offsets, weight
         )
+        if problem.has_root_prior:  # pose prior: residual √k ⊙ e, e = log(T_anchor⁻¹ T_root)
+            e = _root_prior_error(T_root, problem.root_anchor)
+            B = _root_prior_jacobian(T_root, problem.root_anchor)
+            kr = problem.root_stiffness
+            H = H.at[:6, :6].add(B.T @ (kr[:, None] * B))
+            g = g.at[:6].add(B.T @ (kr * e))
+            cost = cost + jnp.sum(kr * e**2)
         if J == 0:
             return H, g, cost
         d = theta - problem.prior_theta
@@ -340,6 +407,7 @@ def solve_pose(
     config: SolverConfig = DEFAULT_CONFIG,
     cameras: Camera | None = None,
     prior: JointPrior | None = None,
+    pose_prior: PosePrior | None = None,
 ) -> PoseSolution:
     """Solve χ = (ξ, Θ) minimising Σ w_i |T(χ) X_i × n_i − m_i|² (eq. 4-5). Jittable and vmappable.
 
@@ -358,6 +426,7 @@ def solve_pose(
             the weighted model points behind their cameras is INVALID_INPUT (the Plücker lines
             alone cannot tell in front from behind).
         prior: a `JointPrior` on Θ (default none, as the method).
+        pose_prior: a `PosePrior` on the root pose (default none, as the method).
 
     Returns:
         PoseSolution. Statuses, first cause first: INVALID_INPUT, TOO_FEW (inputs), NONFINITE,
@@ -385,9 +454,21 @@ def solve_pose(
         stiffness = _prior_stiffness(H0, jnp.where(jnp.isfinite(strength) & (strength > 0), strength, 0.0))
         stiffness = jnp.where(jnp.isfinite(stiffness), stiffness, 0.0)
         prior_theta = jnp.where(jnp.isfinite(prior_theta), prior_theta, theta_safe)
+    if pose_prior is None:
+        root_anchor, root_stiffness = T_init_safe, jnp.zeros((6,), dtype)
+    else:
+        anchor = jnp.asarray(pose_prior.T_anchor, dtype)
+        ok = jnp.all(jnp.isfinite(anchor))
+        root_anchor = jnp.where(ok, anchor, T_init_safe)
+        H0, _, _ = plane_normal_equations(model, T_init_safe, theta_safe, clean.p_model, clean.part, normals, offsets, weight)
+        pos = lambda v: jnp.maximum(jnp.asarray(v, dtype), 0.0)
+        root_stiffness = _root_prior_stiffness(H0, T_init_safe, PosePrior(
+            root_anchor, pos(pose_prior.rotation), pos(pose_prior.translation), pos(pose_prior.rotation_abs),
+            pos(pose_prior.translation_abs)))
     problem = PoseProblem(
         model=model, corr=clean, T_init=T_init_safe, sqrt_weight=_safe_sqrt(weight), normals=normals, offsets=offsets,
-        prior_theta=prior_theta, prior_stiffness=stiffness,
+        prior_theta=prior_theta, prior_stiffness=stiffness, root_anchor=root_anchor, root_stiffness=root_stiffness,
+        has_root_prior=pose_prior is not None,
     )
     if config.backend == "optimistix":
         sol = optx.least_squares(
@@ -489,6 +570,7 @@ def estimate_pose(
     cameras: Camera | None = None,
     throw: bool = True,
     prior: JointPrior | None = None,
+    pose_prior: PosePrior | None = None,
 ) -> PoseSolution:
     """API-edge pose solve: validates the inputs, runs the jitted `solve_pose`, checks the status.
 

@@ -24,7 +24,9 @@ from ._step import TrackerConfig as TrackerConfig
 from ._step import TrackerParams as TrackerParams
 from ._step import TrackerSetup as TrackerSetup
 from ._step import TrackerState as TrackerState
+from ._step import frame_context as frame_context
 from ._step import motion_correspondences as motion_correspondences
 from ._step import track_step as track_step
+from ._tracker import DEFAULT_POSE_PRIOR as DEFAULT_POSE_PRIOR
 from ._tracker import Tracker as Tracker
 from ._tracker import default_params as default_params

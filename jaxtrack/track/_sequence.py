@@ -30,7 +30,7 @@ from ..solve import Cue
 from ._step import TrackerConfig, TrackerParams
 from ._tracker import Tracker
 
-CUE_NAMES = {int(Cue.REGION): "region", int(Cue.FLOW): "flow", int(Cue.SIFT): "sift"}
+CUE_NAMES = {int(Cue.REGION): "region", int(Cue.FLOW): "flow", int(Cue.SIFT): "sift"}  # the built-in row tags
 
 
 @dataclasses.dataclass
@@ -43,7 +43,7 @@ class TrackingRun:
         T_world_root: (F, 4, 4) estimated root pose (model → world, mm); theta: (F, J) joint angles.
         T_cam_world: (C, 4, 4) extrinsics of the cameras used; camera_ids: their view indices.
         status: (F,) `Status` names; confidence: (F,) in [0, 1].
-        counts: (F, C, 3) correspondences with weight per camera and cue (region, flow, sift).
+        counts: (F, C, M) correspondences with weight per camera and configured cue (`cue_names`).
         timings: per frame, host seconds per stage.
         reset: (F,) bool, tracking restarted from the ground truth at this frame (RBOT protocol).
         crops: per frame the (h, w) crop size class of the step (a new class is a new compilation),
@@ -52,6 +52,7 @@ class TrackingRun:
             joint_scale: (J,) model units (radians, mm) per URDF unit (radians, metres).
         lost_joints: per frame, the joints whose moved part lost its silhouette (the segmentation covers
             less than `lost_iou` of the part's visible model silhouette); empty when rigid or region is off.
+        cue_names: (M,) the configured cues, the last axis of `counts` (`TrackerConfig.cue_names`).
     """
 
     frame_ids: list
@@ -69,6 +70,7 @@ class TrackingRun:
     joint_names: tuple = ()
     joint_scale: np.ndarray | None = None
     lost_joints: list | None = None
+    cue_names: tuple = ("region", "flow", "sift")
 
     def joints_urdf(self) -> np.ndarray:
         """(F, J) joint values in URDF units (radians, metres)."""
@@ -126,6 +128,8 @@ def track_sequence(
     init_pose: np.ndarray | None = None,
     init_joints: dict | None = None,
     joint_limits: bool = False,
+    pose_prior: tuple | None = None,
+    region: str | None = None,
     reset_on_failure: bool = False,
     max_frames: int | None = None,
     progress: bool = True,
@@ -143,6 +147,10 @@ def track_sequence(
         init_joints: articulated objects: {joint name: value} (URDF units) of the first frame (default: the
             first frame's scene_gt.json "joints"; joints not named are 0).
         joint_limits: articulated objects: keep Θ within the URDF's limits (off by default, as the method).
+        region: the region modality "region" in `cues` stands for ("levelset", ...; default
+            `TrackerConfig`'s); ignored when `config` is given.
+        pose_prior: (rotation, translation) relative stiffnesses of the pose prior (default
+            `jaxtrack.track.DEFAULT_POSE_PRIOR`; ignored when `params` is given).
         reset_on_failure: the RBOT protocol (needs ground truth for every frame).
         max_frames: track only the first frames.
         progress: show a progress bar with the frame rate.
@@ -196,9 +204,11 @@ def track_sequence(
         mesh, model, theta0, theta_gt = load_mesh(model_path), None, None, None
     if joint_limits and articulated is None:
         raise ValueError(f"joint_limits: obj_id {obj_id} is rigid ({model_path.name}); limits come from a URDF")
-    config = TrackerConfig(cues=tuple(cues)) if config is None else config
+    if config is None:
+        config = TrackerConfig(cues=tuple(cues)) if region is None else TrackerConfig(cues=tuple(cues), region_modality=region)
     limits = (articulated["lower"], articulated["upper"]) if joint_limits else None
-    tracker = Tracker(mesh, rig, model=model, config=config, params=params, joint_limits=limits)
+    tracker = Tracker(mesh, rig, model=model, config=config, params=params, joint_limits=limits,
+                      **({} if pose_prior is None else {"pose_prior": pose_prior}))
     T_world_gt = None if gt is None else np.einsum("ij,fjk->fik", np.linalg.inv(T_cam0_world), gt)
 
     def frames(k):
@@ -225,7 +235,7 @@ def track_sequence(
     state = tracker.start(images, np.linalg.inv(T_cam0_world) @ init_pose, theta0)
     poses, thetas = [np.asarray(state.T_world_root, np.float64)], [np.asarray(state.theta, np.float64)]
     status, conf = [Status.OK.name], [1.0]
-    counts = [np.zeros((len(views), 3), np.int64)]
+    counts = [np.zeros((len(views), len(config.cues)), np.int64)]
     timings = [{"total_s": time.perf_counter() - start}]
     reset = [False]
     crops = [None]
@@ -272,6 +282,7 @@ def track_sequence(
         status=status, confidence=np.asarray(conf), counts=np.stack(counts), timings=timings, reset=np.asarray(reset),
         crops=crops, joint_names=() if articulated is None else articulated["names"],
         joint_scale=None if articulated is None else articulated["scale"], lost_joints=lost_joints,
+        cue_names=config.cue_names,
     )
 
 
@@ -328,7 +339,7 @@ def write_tracking_results(run: TrackingRun, path: str | os.PathLike) -> tuple[p
     with jsonl.open("w") as f:
         for k, im_id in enumerate(run.frame_ids):
             counts = {
-                str(c): {CUE_NAMES[cue]: int(run.counts[k, ci, j]) for j, cue in enumerate(sorted(CUE_NAMES))}
+                str(c): {name: int(run.counts[k, ci, j]) for j, name in enumerate(run.cue_names)}
                 for ci, c in enumerate(run.camera_ids)
             }
             f.write(json.dumps({

@@ -1,16 +1,17 @@
 """The per-frame step of the tracker (Section V, Fig. 2): one jittable function of arrays.
 
-For frames t → t+1 of C cameras sharing one state χ = (ξ, Θ):
+The tracker owns one loop over modalities (`jaxtrack.modality`; region, flow, SIFT and any registered
+one). For frames t → t+1 of C cameras sharing one state χ = (ξ, Θ):
 
-1. render the model at χ_t into each camera's crop (principal point shifted, static crop size);
-2. prediction: optical flow t → t+1 inside the object region with the occlusion map r(x) of frame t
-   as data weight (eq. 6-8), its correspondences, and the SIFT matches (filtered, moved to surface
-   points); a Gauss-Newton solve with the prediction weights of Section V (n_C → n_OF);
-3. refinement: level-set segmentation of frame t+1 with the shape prior Φ0(χ), shape matching, and
-   Gauss-Newton on contour + flow + SIFT correspondences with the adaptive weights, repeated until the
-   pose settles (`refine_pose_region` with the motion correspondences as extra rows);
-4. update: the occlusion map of frame t+1 at the final pose (the next step's r(x) and the SIFT mask),
-   the appearance model where not occluded (eq. 10), the local densities (carried in the region state).
+1. render the model at χ_t into each camera's crop (principal point shifted, static crop size); every
+   modality starts its frame (`Modality.start`: the flow of the crop with r(x) of frame t as data
+   weight (eq. 6-8), the SIFT rows from the host's matches, the carried densities cropped);
+2. prediction: one Gauss-Newton solve on the motion modalities' rows with the prediction weights of
+   Section V (n_C → n_OF); the modalities check their rows against it (SIFT back-projection);
+3. refinement (`refine_rounds`): rounds of {one render per camera at the current pose, the rows of every
+   modality, one fused solve with the joint and pose priors} until the pose settles;
+4. update: every modality's state (densities), the occlusion map of frame t+1 at the final pose (the
+   next step's r(x) and the SIFT mask) and the appearance model where not occluded (eq. 10).
 
 Failures are values: the frame's `Status` and a confidence from evidence the tracker has (silhouette
 agreement of segmentation and model, agreement of the motion cues with the final pose), never from
@@ -21,15 +22,16 @@ plan, the crop size class) is static.
 
 from __future__ import annotations
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 
 from .._status import Status, first_failure, is_usable, status_where
 from ..cues.flow import FlowConfig, FlowEnergyParams
-from ..cues.flow._correspondences import flow_correspondences
-from ..cues.flow._solver import flow_core
-from ..cues.levelset import RegionConfig, RegionParams, RegionProblem, RegionState, crop_camera, refine_pose_region
+from ..cues.levelset import RegionConfig, RegionParams
+from ..cues.lines import LineParams, line_params
 from ..cues.occlusion import (
     AppearanceModel,
     OcclusionConfig,
@@ -39,37 +41,44 @@ from ..cues.occlusion import (
     observe_texels,
     update_appearance,
 )
-from ..cues.sift import (
-    SiftMatches,
-    SiftParams,
-    backprojection_filter,
-    remove_gross_and_static,
-    reprojection_errors,
-    sift_correspondences,
-)
-from ..geometry import Camera, KinematicModel
+from ..cues.sift import SiftParams, reprojection_errors
+from ..geometry import Camera, KinematicModel, crop_camera
 from ..image import crop_window, paste_window
-from ..render import Mesh, RasterPlan, render
-from ..solve import (
-    Correspondences,
-    Cue,
-    CueWeights,
-    SolverConfig,
-    concatenate_correspondences,
-    fuse_cue_weights,
-    solve_pose,
+from ..modality import (
+    FrameContext,
+    Modality,
+    Pose,
+    RefineSettings,
+    fuse_rows,
+    modality_class,
+    modality_names,
+    refine_rounds,
+    render_crops,
 )
+from ..render import Mesh, RasterPlan
+from ..solve import Correspondences, CueWeights, SolverConfig, concatenate_correspondences, solve_pose
+from . import _builtin_modalities  # noqa: F401  (registers region/levelset, flow, sift)
 
 CUES = ("region", "flow", "sift")
+REGION_MODALITIES = ("levelset", "lines")
 
 
 class TrackerConfig(eqx.Module):
     """Static settings of the tracker (they shape the compiled step).
 
     Attributes:
-        cues: the cues used, a subset of ("region", "flow", "sift").
+        cues: the modalities used, in order: registered names ("flow", "sift", "levelset", any name
+            registered with `register_modality`), "region" for the configured region modality
+            (`region_modality`), or `Modality` instances. Default ("region", "flow", "sift").
+        region_modality: which modality "region" means: "levelset" (the paper's dense level set), "lines"
+            (the region energy on correspondence lines, `jaxtrack.cues.lines.LineRegion`) or "auto" (the
+            default): lines for a rigid object, the level set for a kinematic chain (`resolved`; measured in
+            experiments/results/real_sequences_*.md and track_presets_lines.md: on rigid objects the lines
+            track the real video and the tea box better at a twentieth of the time; on chains only the level
+            set has been measured (Table II)).
         occlusion: run the model-based occlusion detection (r(x) for flow, the SIFT mask).
-        region: the region cue's settings (level-set iterations, rounds (10 here), contour capacity, ...).
+        region: the level-set modality's settings (iterations, rounds (10 here), contour capacity, ...);
+            its `outer_iterations` and `solver_steps` are the refinement's rounds and Gauss-Newton steps.
         flow: the flow minimiser's settings (a fast coarse-to-fine schedule on the crop).
         flow_stride: grid step of the flow correspondences (capacity (h/s)·(w/s) per camera).
         prediction_steps: Gauss-Newton steps of the prediction solve.
@@ -79,6 +88,7 @@ class TrackerConfig(eqx.Module):
     """
 
     cues: tuple = eqx.field(static=True, default=CUES)
+    region_modality: str = eqx.field(static=True, default="auto")
     occlusion: bool = eqx.field(static=True, default=True)
     # The prediction starts the refinement near the answer: 10 rounds gave the tea box the same errors as
     # 30 (1.43° / 2.54 mm both, measured) and bound the frame's worst-case time.
@@ -91,12 +101,67 @@ class TrackerConfig(eqx.Module):
 
     def __check_init__(self):
         cues = tuple(self.cues)
-        if not cues or any(c not in CUES for c in cues) or len(set(cues)) != len(cues):
-            raise ValueError(f"TrackerConfig.cues must be a non-empty subset of {CUES} without repeats, got {self.cues}")
+        names = [c if isinstance(c, str) else getattr(c, "name", None) for c in cues]
+        choices = ("region",) + modality_names()
+        bad = [c for c in cues if not (isinstance(c, Modality) or (isinstance(c, str) and c in choices))]
+        if not cues or bad or len(set(names)) != len(names):
+            raise ValueError(f"TrackerConfig.cues must be a non-empty list of distinct modalities from {choices} "
+                             f"(or Modality instances), got {self.cues}")
+        if self.region_modality != "auto" and (self.region_modality not in modality_names()
+                                               or not modality_class(self.region_modality).contour):
+            raise ValueError(f"TrackerConfig.region_modality must be a region modality {REGION_MODALITIES}, got "
+                             f"{self.region_modality!r}")
+        resolved = [(self.region_modality if self.region_modality != "auto" else "lines") if c == "region" else c for c in names]
+        if len(set(resolved)) != len(resolved):
+            raise ValueError(f"TrackerConfig.cues names one modality twice ('region' is {self.region_modality!r}): {self.cues}")
         if self.flow_stride < 1 or self.prediction_steps < 1:
             raise ValueError("TrackerConfig: flow_stride and prediction_steps must be ≥ 1")
         if self.sift_mode not in ("surface", "vertex"):
             raise ValueError(f"TrackerConfig.sift_mode must be 'surface' or 'vertex', got {self.sift_mode!r}")
+
+    @property
+    def cue_names(self) -> tuple[str, ...]:
+        """The configured cues as named in `cues` ("region" stays "region"): the count columns' names."""
+        return tuple(c if isinstance(c, str) else c.name for c in self.cues)
+
+    def resolved(self, articulated: bool) -> TrackerConfig:
+        """This configuration with "auto" resolved for a rigid object (lines) or a chain (levelset)."""
+        if self.region_modality != "auto":
+            return self
+        return dataclasses.replace(self, region_modality="levelset" if articulated else "lines")
+
+    def modalities(self) -> tuple[Modality, ...]:
+        """The configured `Modality` instances, in the order of `cues` ("auto" counts as rigid: "lines")."""
+        region = "lines" if self.region_modality == "auto" else self.region_modality
+        out = []
+        for c in self.cues:
+            if isinstance(c, Modality):
+                out.append(c)
+            else:
+                out.append(modality_class(region if c == "region" else c).from_config(self))
+        return tuple(out)
+
+    def loop_settings(self) -> tuple[int, int, int]:
+        """(rounds, Gauss-Newton steps per round, minimum rounds) of the refinement: the largest of the
+        modalities' preferences (`Modality.loop_preferences`), else the level set's `region` settings."""
+        prefs = [m.loop_preferences() for m in self.modalities()]
+        rounds = max([p[0] for p in prefs] + [0]) or self.region.outer_iterations
+        steps = max([p[1] for p in prefs] + [0]) or self.region.solver_steps
+        return rounds, steps, max([p[2] for p in prefs] + [0])
+
+    def uses_crop(self) -> bool:
+        """Whether any modality (or the occlusion detection) reads crops: else whole frames, one program."""
+        return any(m.uses_crop for m in self.modalities()) or self.runs_occlusion()
+
+    def runs_occlusion(self) -> bool:
+        """The occlusion detection runs when asked for and some modality reads its r(x) or mask."""
+        return self.occlusion and any(m.uses_occlusion for m in self.modalities())
+
+    def has(self, cue: str) -> bool:
+        """Whether a cue is configured ("region" matches any contour modality)."""
+        if cue == "region":
+            return any(m.contour for m in self.modalities())
+        return cue in self.cue_names or any(m.name == cue for m in self.modalities())
 
 
 class TrackerParams(eqx.Module):
@@ -106,13 +171,24 @@ class TrackerParams(eqx.Module):
         weights: user factors on the Section V cue weights.
         flow: α, γ, ε and the smoothness type of eq. 6 (rigid: quadratic α = 800; chains: robust α = 50).
         flow_beta: β of the confidence (eq. 8).
-        region: λ, ν, ρ, ... of the region cue (eq. 11-15).
+        region: λ, ν, ρ, ... of the region cue (eq. 11-15); its `settle_motion` ends the refinement rounds and
+            its `joint_prior` is the refinement's joint prior.
         sift: the SIFT outlier-filter thresholds.
         occlusion: the occlusion threshold 1/4 and update rate 1/8 (eq. 9-10).
         lost_iou, uncertain_iou: silhouette agreement below which a frame is lost / uncertain.
         inlier_px: a motion correspondence agrees with the final pose within this many pixels.
         theta_lower, theta_upper: (J,) joint limits (model units); ±inf (the default: the method uses no
             priors) leaves Θ free. The prediction and the refined Θ are projected onto them.
+        pose_prior_rotation, pose_prior_translation: relative stiffnesses of the Tikhonov prior of the
+            refinement toward the prediction (`jaxtrack.solve.PosePrior`; 0: none, the method's choice).
+        render_reuse_px: a refinement round reuses the previous round's render when the model moved less than
+            this many pixels since (0: a render every round).
+        pose_prior_rotation_abs, pose_prior_translation_abs: absolute stiffnesses of the pose prior (per rad²,
+            per mm² of the weighted residual; M3T's 1000 / 30000 for rows weighted as the line modality's).
+        prior_follows_round: 1: the pose prior pulls toward each round's starting pose (M3T's damping); 0:
+            toward the prediction for the whole frame.
+        lines: the correspondence-line modality's parameters (`jaxtrack.cues.lines.LineParams`, M3T's defaults).
+        line_learning_rate: rate of its colour-histogram update per frame (M3T: 0.2).
     """
 
     weights: CueWeights
@@ -126,10 +202,19 @@ class TrackerParams(eqx.Module):
     inlier_px: jax.Array
     theta_lower: jax.Array
     theta_upper: jax.Array
+    pose_prior_rotation: jax.Array = eqx.field(default_factory=lambda: jnp.zeros(()))
+    pose_prior_translation: jax.Array = eqx.field(default_factory=lambda: jnp.zeros(()))
+    render_reuse_px: jax.Array = eqx.field(default_factory=lambda: jnp.zeros(()))
+    pose_prior_rotation_abs: jax.Array = eqx.field(default_factory=lambda: jnp.zeros(()))
+    pose_prior_translation_abs: jax.Array = eqx.field(default_factory=lambda: jnp.zeros(()))
+    prior_follows_round: jax.Array = eqx.field(default_factory=lambda: jnp.zeros(()))
+    lines: LineParams = eqx.field(default_factory=line_params)
+    line_learning_rate: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(0.2))
 
 
 class TrackerSetup(eqx.Module):
-    """What a sequence fixes: mesh, kinematic model, cameras (C stacked), appearance atlas, raster plan.
+    """What a sequence fixes: mesh, kinematic model, cameras (C stacked), appearance atlas, raster plan, and
+    each modality's prepared data (`Modality.prepare`).
 
     The plan and the config are static (a re-plan after a render overflow is one recompilation,
     decided on the host between frames).
@@ -141,6 +226,10 @@ class TrackerSetup(eqx.Module):
     atlas: TextureAtlas
     plan: RasterPlan = eqx.field(static=True)
     config: TrackerConfig = eqx.field(static=True)
+    prepared: tuple | None = None  # one entry per modality: what its `prepare` made (e.g. a view model)
+
+    def prepared_for(self, index: int):
+        return None if self.prepared is None else self.prepared[index]
 
 
 class TrackerState(eqx.Module):
@@ -151,8 +240,9 @@ class TrackerState(eqx.Module):
         images: (C, H, W, 3) frames t (0-255).
         data_weight: (C, H, W) r(x) of frame t (0 = occluded), the flow cue's data weight.
         visible: (C, H, W) bool non-occluded object pixels of frame t (the SIFT detection mask).
-        region: the region cue's state (last segmentation and local densities).
         appearance: the appearance model f of the occlusion detection.
+        modalities: one state per configured modality (`TrackerConfig.modalities()` order), e.g. the
+            level set's `RegionState` (last segmentation and local densities).
     """
 
     T_world_root: jax.Array
@@ -160,8 +250,8 @@ class TrackerState(eqx.Module):
     images: jax.Array
     data_weight: jax.Array
     visible: jax.Array
-    region: RegionState
     appearance: AppearanceModel
+    modalities: tuple
 
 
 class FrameResult(eqx.Module):
@@ -172,13 +262,13 @@ class FrameResult(eqx.Module):
         status: int32 `Status`: OK, UNCERTAIN, LOST, OUT_OF_VIEW, RENDER_OVERFLOW (re-plan and redo), ...
         confidence: [0, 1] evidence that the pose is right (silhouette agreement, else motion inliers).
         iou: (C,) agreement of the segmentation with the model silhouette at the final pose per camera.
-        counts: (C, 3) correspondences with weight per camera and cue (region, flow, sift).
+        counts: (C, M) correspondences with weight per camera and configured cue (`TrackerConfig.cue_names`).
         motion_inliers: fraction of weighted motion correspondences within `inlier_px` at the final pose.
         occluded_fraction: (C,) fraction of object pixels of frame t+1 detected as occluded.
         iterations: refinement rounds run.
         region_phi: (C, h, w) the segmentation Φ of frame t+1 on the crop (for overlays).
         part_support: (P,) per part, the fraction of its unoccluded model silhouette (all cameras) that the
-            segmentation covers; −1 where the part is not seen or the region cue is off. A limb whose
+            segmentation covers; −1 where the part is not seen or no modality segments. A limb whose
             support falls below `lost_iou` has lost its silhouette.
     """
 
@@ -197,11 +287,6 @@ class FrameResult(eqx.Module):
     part_support: jax.Array
 
 
-def _flatten_cameras(corr: Correspondences) -> Correspondences:
-    """A (C, N) stack of per-camera sets → one set of C·N rows."""
-    return jax.tree.map(lambda a: a.reshape((-1,) + a.shape[2:]), corr)
-
-
 def _counts(corr: Correspondences, num_cameras: int, cue) -> jax.Array:
     live = (corr.weight > 0) & (corr.cue == cue)
     return jnp.sum(live[None, :] & (corr.camera[None, :] == jnp.arange(num_cameras)[:, None]), axis=1)
@@ -214,40 +299,49 @@ def _motion_inliers(corr: Correspondences, cameras: Camera, model: KinematicMode
     return jnp.sum(live & (err <= inlier_px)) / jnp.maximum(jnp.sum(live), 1)
 
 
-def motion_correspondences(setup: TrackerSetup, state: TrackerState, frames, matches: SiftMatches, offsets, params: TrackerParams, crop_shape):
-    """Step 2a: flow and SIFT correspondences at t+1 from frames t, t+1 and the render at χ_t.
+def frame_context(setup: TrackerSetup, state: TrackerState, frames, offsets, crop_shape) -> FrameContext:
+    """The step's `FrameContext`: crops of frames t and t+1, r(x) of t on the crop, the render at χ_t."""
+    cams = crop_camera(setup.cameras, offsets, crop_shape)
+    crop = jax.vmap(crop_window, in_axes=(0, 0, None))
+    dtype = state.T_world_root.dtype
+    ctx = FrameContext(
+        mesh=setup.mesh, model=setup.model, cameras=setup.cameras, crop_cameras=cams, offsets=offsets,
+        frames=frames, crops=crop(frames, offsets, crop_shape), previous=state.images.astype(dtype),
+        previous_crops=crop(state.images.astype(dtype), offsets, crop_shape),
+        data_weight=crop(state.data_weight.astype(dtype), offsets, crop_shape), render_t=None,
+        pose_t=Pose(state.T_world_root, state.theta), plan=setup.plan,
+    )
+    if not any(m.needs_render_t for m in setup.config.modalities()):
+        return ctx
+    return eqx.tree_at(lambda c: c.render_t, ctx, render_crops(ctx, ctx.pose_t), is_leaf=lambda x: x is None)
+
+
+def modality_context(ctx, setup: TrackerSetup, index: int):
+    """The context as modality `index` sees it: with its own prepared data."""
+    prepared = setup.prepared_for(index)
+    return ctx if prepared is None else eqx.tree_at(lambda c: c.prepared, ctx, prepared, is_leaf=lambda x: x is None)
+
+
+def start_modalities(setup: TrackerSetup, state: TrackerState, frames, host, offsets, params: TrackerParams, crop_shape):
+    """Step 1: the `FrameContext` and every modality's per-frame data. Returns (modalities, ctx, frame data)."""
+    modalities = setup.config.modalities()
+    ctx = frame_context(setup, state, frames, offsets, crop_shape)
+    data = tuple(m.start(modality_context(ctx, setup, i), s, h, params)
+                 for i, (m, s, h) in enumerate(zip(modalities, state.modalities, host)))
+    return modalities, ctx, data
+
+
+def motion_correspondences(setup: TrackerSetup, state: TrackerState, frames, host, offsets, params: TrackerParams, crop_shape):
+    """The motion modalities' rows at t+1 (raw weights) from frames t, t+1 and the render at χ_t.
 
     Returns:
-        (Correspondences with FLOW and SIFT rows (raw weights: c_i and 1), the crop render at χ_t).
+        (Correspondences of every motion modality (None without one), the crop render at χ_t, the crop cameras).
     """
-    config, dtype = setup.config, state.T_world_root.dtype
-    cams = crop_camera(setup.cameras, offsets, crop_shape)
-    num_cams = offsets.shape[0]
-    ren_t = jax.vmap(lambda cam: render(setup.mesh, cam, state.T_world_root, state.theta, setup.model, setup.plan))(cams)
-    sil_t = ren_t.face_id >= 0
-    parts = []
-    if "flow" in config.cues:
-        img_t = jax.vmap(crop_window, in_axes=(0, 0, None))(state.images, offsets, crop_shape)
-        img_t1 = jax.vmap(crop_window, in_axes=(0, 0, None))(frames, offsets, crop_shape)
-        r_t = jax.vmap(crop_window, in_axes=(0, 0, None))(state.data_weight, offsets, crop_shape)
-        flow = jax.vmap(lambda a, b, r, om: flow_core(a, b, params.flow, config.flow, r, om, None, params.flow_beta, dtype))(
-            img_t, img_t1, r_t, sil_t
-        )
-        usable = sil_t & (r_t > 0.5) & (flow.status == Status.OK)[:, None, None]
-        fc = jax.vmap(
-            lambda cam, fl, conf, ok, pm, part, c: flow_correspondences(cam, fl, conf, ok, pm, part, None, config.flow_stride, c)
-        )(cams, flow.flow, flow.confidence, usable, ren_t.p_model, ren_t.part_id, jnp.arange(num_cams, dtype=jnp.int32))
-        parts.append(_flatten_cameras(fc))
-    if "sift" in config.cues:
-        shift = offsets[:, None, ::-1].astype(matches.p_t.dtype)  # (y0, x0) → (x0, y0) per camera
-        local = SiftMatches(matches.p_t - shift, matches.p_t1 - shift, matches.valid)
-        local = remove_gross_and_static(local, params.sift)
-        parts.append(
-            sift_correspondences(local, ren_t, cams, params.sift, 1.0, config.sift_mode, setup.mesh, setup.model,
-                                 state.T_world_root, state.theta)
-        )
-    corr = concatenate_correspondences(*parts) if parts else None
-    return corr, ren_t, cams
+    modalities, ctx, data = start_modalities(setup, state, frames.astype(state.T_world_root.dtype), host, offsets,
+                                             params, crop_shape)
+    sets = [d for m, d in zip(modalities, data) if m.motion]
+    corr = concatenate_correspondences(*sets) if sets else None
+    return corr, ctx.render_t, ctx.crop_cameras
 
 
 @eqx.debug.assert_max_traces(max_traces=None)  # counts traces (`eqx.debug.get_num_traces`), never fails
@@ -255,7 +349,7 @@ def track_step(
     setup: TrackerSetup,
     state: TrackerState,
     frames: jax.Array,
-    matches: SiftMatches,
+    host: tuple,
     offsets: jax.Array,
     params: TrackerParams,
     crop_shape: tuple[int, int],
@@ -266,7 +360,8 @@ def track_step(
         setup: mesh, model, stacked cameras (C), atlas, raster plan and config.
         state: the tracker state at t.
         frames: (C, H, W, 3) frames t+1 (0-255).
-        matches: `SiftMatches` t → t+1 in full-frame pixels (C, N); ignored without the SIFT cue.
+        host: one entry per configured modality: what its `host_inputs` made on the host (the SIFT
+            matches t → t+1 in full-frame pixels), None for most (`Tracker.host_inputs`).
         offsets: (C, 2) int32 (y0, x0) of each camera's crop, chosen on the host around the object at t.
         params: `TrackerParams`.
         crop_shape: (h, w) the static crop size class (shared by the cameras).
@@ -280,42 +375,64 @@ def track_step(
     frames = frames.astype(dtype)
     T_t, theta_t = state.T_world_root, state.theta
 
-    # 2. Prediction from the motion cues (n_C → n_OF in the weights).
-    motion, ren_t, cams = motion_correspondences(setup, state, frames, matches, offsets, params, crop_shape)
-    if motion is not None:
-        pred = solve_pose(model, fuse_cue_weights(motion, params.weights, prediction=True), T_t, theta_t,
-                          SolverConfig(max_steps=config.prediction_steps))
+    # 1. Every modality starts its frame.
+    modalities, ctx, data = start_modalities(setup, state, frames, host, offsets, params, crop_shape)
+    contexts = tuple(modality_context(ctx, setup, i) for i in range(len(modalities)))
+    motion_idx = [i for i, m in enumerate(modalities) if m.motion]
+
+    # 2. Prediction from the motion modalities (n_C → n_OF in the weights); every modality sees it.
+    if motion_idx:
+        motion = [modalities[i] for i in motion_idx]
+        fused = fuse_rows(motion, [data[i] for i in motion_idx], params, prediction=True)
+        pred = solve_pose(model, fused, T_t, theta_t, SolverConfig(max_steps=config.prediction_steps))
         use = is_usable(pred.status)
         T_pred = jnp.where(use, pred.T_world_root, T_t)
         theta_pred = jnp.clip(jnp.where(use, pred.theta, theta_t), params.theta_lower, params.theta_upper)
-        if "sift" in config.cues:  # the back-projection check against the preliminary pose
-            is_sift = motion.cue == Cue.SIFT
-            checked = backprojection_filter(motion, cams, model, T_pred, theta_pred, params.sift)
-            motion = motion.with_weight(jnp.where(is_sift, checked.weight, motion.weight))
     else:
         T_pred, theta_pred = T_t, theta_t
+    data = tuple(m.check_prediction(c, s, d, Pose(T_pred, theta_pred), params)
+                 for m, c, s, d in zip(modalities, contexts, state.modalities, data))
 
-    # 3. Refinement: region correspondences + the motion rows, adaptive weights, until settled.
-    crops_t1 = jax.vmap(crop_window, in_axes=(0, 0, None))(frames, offsets, crop_shape)
-    if "region" in config.cues:
-        problem = RegionProblem(setup.mesh, model, setup.cameras, setup.plan, config.region)
-        res = refine_pose_region(problem, crops_t1, offsets, state.region, params.region, T_pred, theta_pred,
-                                 extra=motion, weights=params.weights)
-        T_new, theta_new, region_state = res.T_world_root, jnp.clip(res.theta, params.theta_lower, params.theta_upper), res.state
-        solve_status, iterations, phi = res.status, res.iterations, res.phi
-        fused = res.correspondences
+    # 3. Refinement: rounds of {rows of every modality at the current pose → one fused solve}.
+    refined = any(not m.motion for m in modalities)
+    if refined:
+        rounds, steps, min_rounds = config.loop_settings()
+        settings = RefineSettings(params.region.settle_motion, params.region.joint_prior,
+                                  params.pose_prior_rotation, params.pose_prior_translation, params.render_reuse_px,
+                                  params.pose_prior_rotation_abs, params.pose_prior_translation_abs,
+                                  params.prior_follows_round)
+        res = refine_rounds(modalities, ctx, state.modalities, data, Pose(T_pred, theta_pred.astype(dtype)), params, settings,
+                            rounds, steps, min_rounds=min_rounds, contexts=contexts)
+        T_new, theta_new = res.pose.T_world_root, jnp.clip(res.pose.theta, params.theta_lower, params.theta_upper)
+        solve_status, iterations, fused, carries = res.status, res.rounds, res.rows, res.carries
     else:
-        T_new, theta_new, region_state = T_pred, theta_pred, state.region
-        solve_status = Status.OK if motion is None else first_failure(pred.status)
+        T_new, theta_new = T_pred, theta_pred
+        solve_status = Status.OK if not motion_idx else first_failure(pred.status)
         solve_status = jnp.where(solve_status == Status.MAX_STEPS, Status.OK, solve_status)
         iterations = jnp.zeros((), jnp.int32)
-        phi = -jnp.ones((num_cams,) + tuple(crop_shape), dtype)
-        fused = motion
+        carries = tuple(None for _ in modalities)
+        fused = fuse_rows(modalities, list(data), params, prediction=True) if motion_idx else None
+    # A pose is never NaN: a failed step keeps the previous pose (and the modalities learn nothing from it).
+    finite = jnp.all(jnp.isfinite(T_new)) & jnp.all(jnp.isfinite(theta_new))
+    T_new = jnp.where(finite, T_new, T_t)
+    theta_new = jnp.where(finite, theta_new, theta_t)
+    final = Pose(T_new, theta_new)
+    updated = tuple(m.update(c, s, d, r, final, params)
+                    for m, c, s, d, r in zip(modalities, contexts, state.modalities, data, carries))
+    modality_states = jax.tree.map(lambda new, old: jnp.where(finite, new, old), updated, tuple(state.modalities))
 
-    # 4. Occlusion map of frame t+1 at the final pose; appearance update where not occluded.
-    ren_t1 = jax.vmap(lambda cam: render(setup.mesh, cam, T_new, theta_new, model, setup.plan))(cams)
-    sil_t1 = ren_t1.face_id >= 0
-    if config.occlusion:
+    # 4. Occlusion map of frame t+1 at the final pose; appearance update where not occluded (when some
+    #    modality reads r(x) or the visible mask; the final render only when something reads it).
+    cams = ctx.crop_cameras
+    crops_t1 = ctx.crops
+    occlusion = config.runs_occlusion()
+    segmenting = any(m.contour and m.needs_render for m in modalities)
+    ren_t1 = render_crops(ctx, final) if (occlusion or segmenting or motion_idx) else None
+    if ren_t1 is not None:
+        sil_t1 = ren_t1.face_id >= 0
+    else:
+        sil_t1 = jnp.zeros((num_cams,) + tuple(crop_shape), bool)
+    if occlusion:
         obs = observe_texels(setup.atlas, crops_t1, ren_t1.depth, cams, T_new, params.occlusion, theta_new, model,
                              config.occlusion_config)
         occ = detect_occlusion(setup.atlas, state.appearance, obs, ren_t1, params.occlusion, config.occlusion_config)
@@ -325,53 +442,69 @@ def track_step(
         appearance = state.appearance
         occluded = jnp.zeros_like(sil_t1)
     full = state.data_weight.shape[1:]
-    data_weight = jax.vmap(lambda o, off: paste_window(jnp.ones(full, dtype), jnp.where(o, 0.0, 1.0).astype(dtype), off))(occluded, offsets)
-    visible = jax.vmap(lambda v, off: paste_window(jnp.zeros(full, bool), v, off))(sil_t1 & ~occluded, offsets)
+    if occlusion or motion_idx:
+        data_weight = jax.vmap(lambda o, off: paste_window(jnp.ones(full, dtype), jnp.where(o, 0.0, 1.0).astype(dtype), off))(
+            occluded, offsets)
+        visible = jax.vmap(lambda v, off: paste_window(jnp.zeros(full, bool), v, off))(sil_t1 & ~occluded, offsets)
+    else:  # nothing reads them: carried unchanged (no full-frame writes)
+        data_weight, visible = state.data_weight, state.visible
 
-    # Evidence: silhouette agreement, motion-cue agreement, visibility.
+    # Evidence: each modality's, silhouette agreement, motion-cue agreement, visibility.
+    evidence = {}
+    for m, c, s, d, r in zip(modalities, contexts, state.modalities, data, carries):  # states of t: nothing learnt yet
+        if refined or m.motion:
+            evidence.update(m.evidence(c, s, d, r, final, ren_t1, params))
+    has_segmentation = "segmentation" in evidence
+    phi = evidence["segmentation"] if has_segmentation else -jnp.ones((num_cams,) + tuple(crop_shape), dtype)
     seg = phi > 0
     inter = jnp.sum(seg & sil_t1, axis=(1, 2))
     union = jnp.sum(seg | sil_t1, axis=(1, 2))
     iou = jnp.where(union > 0, inter / jnp.maximum(union, 1), 0.0).astype(dtype)
-    seen = jnp.sum(sil_t1, axis=(1, 2)) > 0
+    if ren_t1 is not None:
+        seen = jnp.sum(sil_t1, axis=(1, 2)) > 0
+    else:
+        seen = evidence.get("seen", jnp.ones((num_cams,), bool))
     # Per part (limb): how much of its unoccluded silhouette the segmentation supports.
     own = sil_t1 & ~occluded
-    part_ids = jnp.where(own, ren_t1.part_id, model.num_parts)  # a spill bin for background pixels
+    part_ids = jnp.where(own, ren_t1.part_id, model.num_parts) if ren_t1 is not None else jnp.full(own.shape, model.num_parts)
     part_pixels = jnp.zeros(model.num_parts + 1, dtype).at[part_ids.ravel()].add(1.0)[:-1]
     part_inside = jnp.zeros(model.num_parts + 1, dtype).at[jnp.where(seg, part_ids, model.num_parts).ravel()].add(1.0)[:-1]
     part_support = jnp.where(part_pixels > 0, part_inside / jnp.maximum(part_pixels, 1.0), -1.0)
-    if "region" not in config.cues:
+    if not has_segmentation:
         part_support = -jnp.ones_like(part_support)
-    if motion is not None:
+    motion_rows = [data[i] for i in motion_idx]
+    if motion_rows:
+        motion = concatenate_correspondences(*motion_rows) if len(motion_rows) > 1 else motion_rows[0]
         inliers = _motion_inliers(motion, cams, model, T_new, theta_new, params.inlier_px).astype(dtype)
     else:
         inliers = jnp.ones((), dtype)
-    if "region" in config.cues:
+    if has_segmentation:
         confidence = jnp.sum(jnp.where(seen, iou, 0.0)) / jnp.maximum(jnp.sum(seen), 1)
+    elif "confidence" in evidence:
+        confidence = jnp.asarray(evidence["confidence"], dtype)
     else:
         confidence = inliers
     confidence = jnp.clip(confidence, 0.0, 1.0)
     quality = jnp.where(confidence < params.lost_iou, Status.LOST,
                         jnp.where(confidence < params.uncertain_iou, Status.UNCERTAIN, Status.OK))
     solve_ok = is_usable(solve_status)
+    overflow = jnp.zeros((), bool)
+    for r in (ctx.render_t, ren_t1):
+        if r is not None:
+            overflow = overflow | jnp.any(r.status == Status.RENDER_OVERFLOW)
     status = first_failure(
         status_where(~jnp.any(seen), Status.OUT_OF_VIEW, Status.OK),
-        status_where(jnp.any(ren_t.status == Status.RENDER_OVERFLOW) | jnp.any(ren_t1.status == Status.RENDER_OVERFLOW),
-                     Status.RENDER_OVERFLOW, Status.OK),
+        status_where(overflow, Status.RENDER_OVERFLOW, Status.OK),
         status_where(solve_ok, Status.OK, Status.LOST),
         quality,
     )
-    # A pose is never NaN: a failed step keeps the previous pose.
-    finite = jnp.all(jnp.isfinite(T_new)) & jnp.all(jnp.isfinite(theta_new))
-    T_new = jnp.where(finite, T_new, T_t)
-    theta_new = jnp.where(finite, theta_new, theta_t)
     status = first_failure(status_where(finite, Status.OK, Status.NONFINITE), status)
 
-    counts = jnp.zeros((num_cams, 3), jnp.int32)
+    counts = jnp.zeros((num_cams, len(modalities)), jnp.int32)
     if fused is not None:
-        counts = jnp.stack([_counts(fused, num_cams, cue) for cue in (Cue.REGION, Cue.FLOW, Cue.SIFT)], -1).astype(jnp.int32)
+        counts = jnp.stack([_counts(fused, num_cams, m.cue) for m in modalities], -1).astype(jnp.int32)
     n_obj = jnp.maximum(jnp.sum(sil_t1, axis=(1, 2)), 1)
-    new_state = TrackerState(T_new, theta_new, frames, data_weight, visible, region_state, appearance)
+    new_state = TrackerState(T_new, theta_new, frames, data_weight, visible, appearance, modality_states)
     result = FrameResult(
         T_world_root=T_new, theta=theta_new, T_pred=T_pred, theta_pred=theta_pred, status=status.astype(jnp.int32),
         confidence=confidence, iou=iou, counts=counts, motion_inliers=inliers,

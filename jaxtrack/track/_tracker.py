@@ -26,7 +26,8 @@ import numpy as np
 
 from .._status import Status
 from ..cues.flow import articulated_params, rigid_params
-from ..cues.levelset import RegionProblem, densities_at_pose, initial_state, projected_boxes, region_crop, region_params
+from ..cues.levelset import projected_boxes, region_crop, region_params
+from ..cues.lines import line_params
 from ..cues.occlusion import (
     OcclusionParams,
     init_appearance,
@@ -35,10 +36,12 @@ from ..cues.occlusion import (
     occlusion_params,
     update_appearance,
 )
-from ..cues.sift import SiftConfig, SiftMatches, sift_matches, sift_params
-from ..geometry import Camera, KinematicModel, rigid_model, select_camera, stack_cameras
+from ..cues.sift import SiftConfig, sift_params
+from ..geometry import Camera, KinematicModel, crop_camera, rigid_model, stack_cameras
 from ..geometry._validate import checked_rotation
-from ..render import Mesh, RasterPlan, face_extents, merge_plans, plan_raster, render
+from ..image import crop_window
+from ..modality import Pose, StartContext
+from ..render import Mesh, RasterPlan, render, replan
 from ..solve import CueWeights
 from ._step import FrameResult, TrackerConfig, TrackerParams, TrackerSetup, TrackerState, track_step
 
@@ -46,7 +49,18 @@ _track_step_jit = eqx.filter_jit(track_step)
 
 # Factor on the Section V flow weights in the tracker's defaults (see `default_params`).
 TRACKER_FLOW_FACTOR = 0.1
-_densities_at_pose_jit = eqx.filter_jit(densities_at_pose)
+
+
+@eqx.filter_jit
+def _initial_modality_states(setup: TrackerSetup, frames, offsets, T, theta, params: TrackerParams, crop_shape):
+    """Every configured modality's state at the first frame (known pose), one compiled program."""
+    cams = crop_camera(setup.cameras, offsets, crop_shape)
+    crops = jax.vmap(crop_window, in_axes=(0, 0, None))(frames.astype(T.dtype), offsets, crop_shape)
+    ren = jax.vmap(lambda cam: render(setup.mesh, cam, T, theta, setup.model, setup.plan))(cams)
+    ctx = StartContext(setup.mesh, setup.model, setup.cameras, cams, offsets, frames, crops, ren, Pose(T, theta), setup.plan)
+    return tuple(m.init_state(ctx if setup.prepared_for(i) is None else eqx.tree_at(
+        lambda c: c.prepared, ctx, setup.prepared_for(i), is_leaf=lambda x: x is None), params)
+        for i, m in enumerate(setup.config.modalities()))
 
 
 @eqx.filter_jit
@@ -66,10 +80,15 @@ def _initial_appearance_jit(setup: TrackerSetup, frames, T, theta, params: Occlu
 # 1.3° / 2.0°; plus the joint prior 0.03 0.5° / 0.5° (pelvis pitch against back and hips no longer drifts).
 CHAIN_REGION = {"tangent_weight": 1.0, "joint_prior": 0.03}
 
+# Relative stiffnesses (rotation, translation) of the refinement's pose prior (`jaxtrack.solve.PosePrior`).
+DEFAULT_POSE_PRIOR = (0.0, 0.0, 0.0, 0.0, 0.0)
+# A refinement round reuses the last render when the model moved less than this (px) since it was made.
+RENDER_REUSE_PX = 0.0
+
 
 def default_params(
     model: KinematicModel, crop_shape: tuple[int, int] = (256, 256), dtype=jnp.float32, weights: CueWeights | None = None,
-    occlusion: OcclusionParams | None = None, joint_limits: tuple | None = None,
+    occlusion: OcclusionParams | None = None, joint_limits: tuple | None = None, pose_prior: tuple | None = None,
 ) -> TrackerParams:
     """The method's parameters: quadratic flow smoothness α = 800 for a rigid object, robust α = 50 for
     a chain (β = 12 / 3), region λ = 0.05, ν = 0.001 |Ω|^0.7 (Ω the crop), ρ = 12, occlusion 1/4 and 1/8.
@@ -83,11 +102,21 @@ def default_params(
     either way) 10.7° / 8.8° / 8.5°. Where the region cue is poor (a 50 px textured box on a similar
     background, tests/test_tracker.py) less flow weight is worse: 2.7° → 5.0° after one frame.
 
+    `pose_prior` = (rotation, translation[, rotation_abs, translation_abs, follows_round]): relative (and
+    absolute) stiffnesses of the refinement's Tikhonov prior (`jaxtrack.solve.PosePrior`), toward the
+    prediction, or toward each round's start when follows_round = 1 (M3T); `DEFAULT_POSE_PRIOR` by default.
+
     `joint_limits` = (lower, upper), (J,) each in model units (radians, mm), e.g. a URDF's
     (`ArticulatedModel.lower/upper`); by default none (±inf), as the method uses no priors.
     """
     if weights is None:
         weights = CueWeights(flow=TRACKER_FLOW_FACTOR)
+    prior = DEFAULT_POSE_PRIOR if pose_prior is None else tuple(float(v) for v in pose_prior)
+    if len(prior) == 2:
+        prior = prior + (0.0, 0.0, 0.0)
+    if len(prior) != 5 or not all(np.isfinite(v) and v >= 0 for v in prior):
+        raise ValueError(f"pose_prior must be (rotation, translation[, rotation_abs, translation_abs, follows_round]), "
+                         f"finite numbers ≥ 0, got {pose_prior}")
     flow = rigid_params() if model.num_joints == 0 else articulated_params()
     flow = jax.tree.map(lambda a: jnp.asarray(a, dtype), flow)
     beta = 3.0 if flow.robust_smoothness else 12.0
@@ -111,6 +140,14 @@ def default_params(
         inlier_px=jnp.asarray(3.0, dtype),
         theta_lower=lower,
         theta_upper=upper,
+        pose_prior_rotation=jnp.asarray(prior[0], dtype),
+        pose_prior_translation=jnp.asarray(prior[1], dtype),
+        render_reuse_px=jnp.asarray(RENDER_REUSE_PX, dtype),
+        pose_prior_rotation_abs=jnp.asarray(prior[2], dtype),
+        pose_prior_translation_abs=jnp.asarray(prior[3], dtype),
+        prior_follows_round=jnp.asarray(prior[4], dtype),
+        lines=line_params(dtype),
+        line_learning_rate=jnp.asarray(0.2, dtype),
     )
 
 
@@ -134,11 +171,12 @@ class Tracker:
         texel_mm: appearance-model texel size (default: about one pixel at the first pose).
         joint_limits: (lower, upper) (J,) joint limits in model units for the default parameters (none by
             default: the method uses no priors).
+        pose_prior: (rotation, translation) relative stiffnesses of the pose prior for the default parameters.
     """
 
     def __init__(self, mesh: Mesh, cameras: Camera, model: KinematicModel | None = None, config: TrackerConfig | None = None,
                  params: TrackerParams | None = None, sift: SiftConfig | None = None, margin: int = 24,
-                 texel_mm: float | None = None, joint_limits: tuple | None = None):
+                 texel_mm: float | None = None, joint_limits: tuple | None = None, pose_prior: tuple | None = None):
         if not isinstance(mesh, Mesh):
             raise TypeError(f"mesh must be a jaxtrack.render.Mesh (see make_mesh / io.load_mesh), got {type(mesh).__name__}")
         self.mesh = mesh
@@ -148,7 +186,8 @@ class Tracker:
         if int(np.max(np.asarray(mesh.vertex_part))) >= self.model.num_parts:
             raise ValueError(f"mesh has parts up to {int(np.max(np.asarray(mesh.vertex_part)))} but the model has "
                              f"{self.model.num_parts} part(s)")
-        self.config = TrackerConfig() if config is None else config
+        # "auto" region modality: correspondence lines for a rigid object, the level set for a chain.
+        self.config = (TrackerConfig() if config is None else config).resolved(self.model.num_joints > 0)
         self.user_params = params
         self.sift = SiftConfig() if sift is None else sift
         self.margin = int(margin)
@@ -160,12 +199,24 @@ class Tracker:
         self.last_motion_px = 0.0
         self.crop_shape: tuple[int, int] | None = None  # kept while the object fits (one compile per class)
         self.joint_limits = joint_limits
-        if joint_limits is not None:  # checked now, not at the first frame
-            default_params(self.model, (64, 64), self.dtype, joint_limits=joint_limits)
+        self.prepared: tuple | None = None
+        self.pose_prior = pose_prior
+        if joint_limits is not None or pose_prior is not None:  # checked now, not at the first frame
+            default_params(self.model, (64, 64), self.dtype, joint_limits=joint_limits, pose_prior=pose_prior)
 
     @property
     def num_cameras(self) -> int:
         return self.cameras.K.shape[0]
+
+    def setup(self) -> TrackerSetup:
+        """What the compiled step takes as fixed: mesh, model, cameras, atlas, plan, config, prepared data."""
+        return TrackerSetup(self.mesh, self.model, self.cameras, self.atlas, self.plan, self.config, self.prepared)
+
+    def prepare(self) -> tuple:
+        """Every modality's one-off host set-up (`Modality.prepare`, e.g. a sparse viewpoint model), made once."""
+        if self.prepared is None:
+            self.prepared = tuple(m.prepare(self.mesh, self.model, self.cameras) for m in self.config.modalities())
+        return self.prepared
 
     # --- host helpers -----------------------------------------------------------------------------
     def check_frames(self, frames, name: str = "frames") -> np.ndarray:
@@ -200,10 +251,7 @@ class Tracker:
         return jnp.asarray(T, self.dtype), jnp.asarray(theta, self.dtype)
 
     def _replan(self, T, theta):
-        ext = np.stack([face_extents(self.mesh, select_camera(self.cameras, c), T, theta, self.model)
-                        for c in range(self.num_cameras)])
-        new = plan_raster(ext, margin=2.0 * 1.5**self.replans)
-        self.plan = new if self.plan is None else merge_plans(self.plan, new)
+        self.plan = replan(self.plan, self.mesh, self.cameras, T, theta, self.model, self.replans)
         self.replans += 1
 
     def crop(self, T, theta, boxes: np.ndarray | None = None) -> tuple[np.ndarray, tuple[int, int]]:
@@ -213,6 +261,9 @@ class Tracker:
         if not np.all(np.isfinite(boxes)):
             return None, None
         H, W = self.cameras.height, self.cameras.width
+        if not self.config.uses_crop():  # no modality reads crops: whole frames, one program for every size
+            self.crop_shape = (H, W)
+            return np.zeros((self.num_cameras, 2), np.int32), (H, W)
         # Keep what is on screen; a box entirely off screen still gets a crop at the border.
         boxes[:, [0, 2]] = np.clip(boxes[:, [0, 2]], 0, W - 1)
         boxes[:, [1, 3]] = np.clip(boxes[:, [1, 3]], 0, H - 1)
@@ -230,7 +281,7 @@ class Tracker:
             return self.user_params
         if crop_shape not in self._default_params:  # built once per crop size, not per frame
             self._default_params[crop_shape] = default_params(self.model, crop_shape, self.dtype,
-                                                              joint_limits=self.joint_limits)
+                                                              joint_limits=self.joint_limits, pose_prior=self.pose_prior)
         return self._default_params[crop_shape]
 
     # --- tracking ---------------------------------------------------------------------------------
@@ -252,6 +303,7 @@ class Tracker:
         self.last_motion_px = 0.0
         if self.plan is None:
             self._replan(T, theta)
+        self.prepare()
         if self.atlas is None:
             texel = self.texel_mm
             if texel is None:  # about one pixel at the first pose
@@ -259,36 +311,37 @@ class Tracker:
                 texel = max(0.25, depth / float(np.asarray(self.cameras.K[0, 0, 0])))
             self.atlas = make_texture_atlas(self.mesh, texel_mm=texel)
         sil, appearance = self._initial_appearance(jnp.asarray(frames), T, theta)
-        f = self.config.region.density_factor
-        region = initial_state(self.num_cameras, H, W, 3 + int(self.config.region.texture), f, self.dtype)
-        if "region" in self.config.cues:
-            # The first frame's pose is known: learn the local densities there, so the next frame's first
-            # level-set iterations use densities of the right regions (Section IV), not ones learnt
-            # from the predicted pose on the new frame.
-            offsets, crop_shape = self.crop(T, theta, boxes)
-            crops = jnp.stack([jnp.asarray(frames[c, y:y + crop_shape[0], x:x + crop_shape[1]], self.dtype)
-                               for c, (y, x) in enumerate(offsets)])
-            problem = RegionProblem(self.mesh, self.model, self.cameras, self.plan, self.config.region)
-            region = _densities_at_pose_jit(problem, crops, jnp.asarray(offsets), region, self.params_for(crop_shape).region,
-                                            T, theta)
+        # The first frame's pose is known: every modality learns its state there (the level set's local
+        # densities, so the next frame's first iterations use densities of the right regions, Section IV).
+        offsets, crop_shape = self.crop(T, theta, boxes)
+        setup = self.setup()
+        states = _initial_modality_states(setup, jnp.asarray(frames, self.dtype), jnp.asarray(offsets), T, theta,
+                                          self.params_for(crop_shape), crop_shape)
         return TrackerState(
             T_world_root=T, theta=theta, images=jnp.asarray(frames, self.dtype),
-            data_weight=jnp.ones((self.num_cameras, H, W), self.dtype), visible=sil, region=region, appearance=appearance,
+            data_weight=jnp.ones((self.num_cameras, H, W), self.dtype), visible=sil, appearance=appearance,
+            modalities=states,
         )
 
     def _initial_appearance(self, frames, T, theta):
-        setup = TrackerSetup(self.mesh, self.model, self.cameras, self.atlas, self.plan, self.config)
+        setup = self.setup()
         params = self.params_for((self.cameras.height, self.cameras.width)).occlusion
         return _initial_appearance_jit(setup, frames, T, theta, params)
 
-    def matches(self, state: TrackerState, frames: np.ndarray, timings: dict | None = None) -> SiftMatches:
-        """Host SIFT matches t → t+1 inside the visible object region of frame t (empty without the cue)."""
-        cap = self.sift.capacity
-        if "sift" not in self.config.cues:
-            z = jnp.zeros((self.num_cameras, cap, 2), self.dtype)
-            return SiftMatches(z, z, jnp.zeros((self.num_cameras, cap), bool))
-        return sift_matches(np.asarray(state.images), frames, np.asarray(state.visible), self.sift, timings=timings,
-                            dtype=self.dtype)
+    def previous_images(self, state: TrackerState) -> np.ndarray:
+        """(C, H, W, 3) frames t on the host (for host-side modalities such as SIFT detection)."""
+        return np.asarray(state.images)
+
+    def visible_mask(self, state: TrackerState) -> np.ndarray:
+        """(C, H, W) bool unoccluded object pixels of frame t on the host (the SIFT detection mask)."""
+        return np.asarray(state.visible)
+
+    def host_inputs(self, state: TrackerState, frames: np.ndarray, timings: dict | None = None) -> tuple:
+        """Every configured modality's host-side input for frames t+1 (`Modality.host_inputs`): SIFT matches
+        t → t+1 inside the visible object region of frame t; None for the others."""
+        return tuple(m.host_inputs(self, state, frames, timings) for m in self.config.modalities())
+
+    matches = host_inputs  # the old name (the only host input used to be the SIFT matches)
 
     def step(self, state: TrackerState, frames, params: TrackerParams | None = None) -> tuple[TrackerState, FrameResult, dict]:
         """Track frames t+1 from `state` at t. Never raises for tracking failures (see `FrameResult.status`).
@@ -310,13 +363,13 @@ class Tracker:
             lost = eqx.tree_at(lambda s: s.images, state, jnp.asarray(frames, self.dtype))
             timings["total_s"] = time.perf_counter() - start
             return lost, self._out_of_view(state), {"timings": timings, "offsets": None, "crop_shape": None}
-        matches = self.matches(state, frames, timings)
+        host = self.host_inputs(state, frames, timings)
         params = self.params_for(crop_shape) if params is None else params
         frames_j = jnp.asarray(frames, self.dtype)
         step_start = time.perf_counter()
         for _ in range(3):
-            setup = TrackerSetup(self.mesh, self.model, self.cameras, self.atlas, self.plan, self.config)
-            new_state, result = _track_step_jit(setup, state, frames_j, matches, jnp.asarray(offsets), params, crop_shape)
+            setup = self.setup()
+            new_state, result = _track_step_jit(setup, state, frames_j, host, jnp.asarray(offsets), params, crop_shape)
             if int(result.status) != Status.RENDER_OVERFLOW:
                 break
             self._replan(result.T_world_root, result.theta)
@@ -333,7 +386,7 @@ class Tracker:
         return FrameResult(
             T_world_root=state.T_world_root, theta=state.theta, T_pred=state.T_world_root, theta_pred=state.theta,
             status=jnp.asarray(Status.OUT_OF_VIEW, jnp.int32), confidence=jnp.zeros((), dt), iou=jnp.zeros((C,), dt),
-            counts=jnp.zeros((C, 3), jnp.int32), motion_inliers=jnp.zeros((), dt), occluded_fraction=jnp.zeros((C,), dt),
+            counts=jnp.zeros((C, len(self.config.cues)), jnp.int32), motion_inliers=jnp.zeros((), dt), occluded_fraction=jnp.zeros((C,), dt),
             iterations=jnp.zeros((), jnp.int32), region_phi=-jnp.ones((C, 1, 1), dt),
             part_support=-jnp.ones((self.model.num_parts,), dt),
         )

@@ -1,6 +1,7 @@
 """The region cue (Section IV, eq. 11-15): level-set segmentation with local Gaussian densities and
 a shape prior, shape matching of the contours, and region-only pose refinement."""
 
+from ...geometry import crop_camera as crop_camera  # the crop geometry lives in geometry; kept here for old imports
 from ._densities import LocalDensities as LocalDensities
 from ._densities import data_term as data_term
 from ._densities import local_densities as local_densities
@@ -24,18 +25,20 @@ from ._matching import closest_point_matches as closest_point_matches
 from ._matching import closest_point_matches_at as closest_point_matches_at
 from ._matching import regularised_matches as regularised_matches
 from ._matching import zero_level_points as zero_level_points
+from ._modality import LevelSetCarry as LevelSetCarry
+from ._modality import LevelSetFrame as LevelSetFrame
+from ._modality import LevelSetRegion as LevelSetRegion
+from ._modality import RegionProblem as RegionProblem
+from ._modality import RegionResult as RegionResult
+from ._modality import densities_at_pose as densities_at_pose
+from ._modality import refine_pose_region as refine_pose_region
 from ._redistance import band_sdf as band_sdf
 from ._redistance import contour_pixels as contour_pixels
 from ._redistance import nearest_seed_points as nearest_seed_points
 from ._redistance import redistance as redistance
 from ._refine import RegionConfig as RegionConfig
-from ._refine import RegionProblem as RegionProblem
-from ._refine import RegionResult as RegionResult
 from ._refine import RegionState as RegionState
 from ._refine import contour_matches as contour_matches
-from ._refine import crop_camera as crop_camera
-from ._refine import densities_at_pose as densities_at_pose
 from ._refine import initial_state as initial_state
-from ._refine import refine_pose_region as refine_pose_region
 from ._refine import segment as segment
 from ._refine import silhouette_contour as silhouette_contour

@@ -13,21 +13,13 @@ from ...geometry import (
     part_transforms,
     project_points,
     rigid_model,
-    select_camera,
     stack_cameras,
 )
-from ...render import Mesh, RasterPlan, face_extents, merge_plans, plan_raster
+from ...render import Mesh, RasterPlan, replan
 from ..flow import ROI_SIZES
 from ._energy import RegionParams, region_params
-from ._refine import (
-    RegionConfig,
-    RegionProblem,
-    RegionResult,
-    RegionState,
-    _refine_jit,
-    densities_at_pose,
-    initial_state,
-)
+from ._modality import RegionProblem, RegionResult, _refine_jit, densities_at_pose
+from ._refine import RegionConfig, RegionState, initial_state
 
 _densities_at_pose_jit = eqx.filter_jit(densities_at_pose)
 
@@ -139,13 +131,7 @@ class RegionRefiner:
         return self.cameras.K.shape[0]
 
     def _replan(self, T, theta):
-        rig = self.cameras
-        ext = np.stack([face_extents(self.mesh, select_camera(rig, c), T, theta, self.model, self.cull_backfaces)
-                        for c in range(self.num_cameras)])
-        new = plan_raster(ext, margin=2.0, cull_backfaces=self.cull_backfaces)
-        if self.plan is not None:  # never shrink (merge_plans keeps the tile pool for huge faces)
-            new = merge_plans(self.plan, new)
-        self.plan = new
+        self.plan = replan(self.plan, self.mesh, self.cameras, T, theta, self.model, 0, self.cull_backfaces)
 
     def check_images(self, images) -> np.ndarray:
         images = np.asarray(images)

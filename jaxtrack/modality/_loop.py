@@ -1,0 +1,239 @@
+"""The tracker's one refinement loop over modalities: rows of every modality → one fused solve, repeated.
+
+`fuse_rows` applies each modality's Section V weight rule to its raw rows (n_C from the contour
+modalities, n_OF from the prediction's reference modality) and concatenates them; `refine_rounds`
+runs rounds of {one render per camera at the current pose (when a modality asks), rows of every
+modality, one Gauss-Newton solve with the joint and pose priors} until the pose settles, as a
+`lax.while_loop` with a named state (`RoundState`). Both are jittable and vmappable over parameters.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._status import Status, first_failure, status_where
+from ..geometry import part_transforms, project_points
+from ..render import RenderOutput, render
+from ..solve import Correspondences, JointPrior, PosePrior, SolverConfig, concatenate_correspondences, solve_pose
+from ._protocol import FrameContext, FusionCounts, Modality, Pose
+
+
+def live_count(corr: Correspondences) -> jax.Array:
+    """Rows with positive weight (a float of the set's dtype)."""
+    return jnp.sum(corr.weight > 0).astype(corr.weight.dtype)
+
+
+def fuse_rows(modalities: Sequence[Modality], row_sets: Sequence[Correspondences], params, prediction: bool = False) -> Correspondences:
+    """Section V fusion over modalities: each set scaled by its modality's `weight_scale`, then concatenated.
+
+    Args:
+        modalities: the configured modalities (static); row_sets: their raw rows, one set each.
+        params: the tracker's parameters (user factors live there).
+        prediction: True in the prediction step (the reference count is n_OF instead of n_C). Static.
+
+    Returns:
+        One `Correspondences` (capacity = sum of the sets' capacities).
+    """
+    counts = [live_count(c) for c in row_sets]
+    dtype = row_sets[0].weight.dtype
+    flag = (lambda m: m.prediction_reference) if prediction else (lambda m: m.contour)
+    reference = sum((n for m, n in zip(modalities, counts) if flag(m)), jnp.zeros((), dtype))
+    scaled = [
+        c.with_weight(c.weight * m.weight_scale(FusionCounts(reference, n), params, prediction).astype(dtype))
+        for m, c, n in zip(modalities, row_sets, counts)
+    ]
+    return concatenate_correspondences(*scaled) if len(scaled) > 1 else scaled[0]
+
+
+def render_crops(ctx: FrameContext, pose: Pose) -> RenderOutput:
+    """The model at `pose` in every crop (C leading): one render per camera."""
+    return jax.vmap(lambda cam: render(ctx.mesh, cam, pose.T_world_root, pose.theta, ctx.model, ctx.plan))(ctx.crop_cameras)
+
+
+PROBE_VERTICES = 64
+
+
+def max_pixel_motion(ctx: FrameContext, before: Pose, after: Pose) -> jax.Array:
+    """Largest image motion (px, over the cameras) of up to `PROBE_VERTICES` mesh vertices from `before` to
+    `after`: whether a render made at `before` still stands for `after`."""
+    mesh, model = ctx.mesh, ctx.model
+    idx = np.unique(np.linspace(0, mesh.num_vertices - 1, min(PROBE_VERTICES, mesh.num_vertices)).astype(np.int32))
+    verts, part = mesh.vertices[idx], mesh.vertex_part[idx]
+
+    def world(p: Pose):
+        A = part_transforms(model, p.T_world_root, p.theta)[part]
+        return jnp.einsum("nij,nj->ni", A[:, :3, :3], verts.astype(A.dtype)) + A[:, :3, 3]
+
+    a, b = world(before), world(after)
+    px_a = jax.vmap(lambda cam: project_points(cam, a)[0])(ctx.crop_cameras)
+    px_b = jax.vmap(lambda cam: project_points(cam, b)[0])(ctx.crop_cameras)
+    return jnp.max(jnp.linalg.norm(px_a - px_b, axis=-1))
+
+
+def mean_motion(model, corr: Correspondences, before: Pose, after: Pose) -> jax.Array:
+    """Mean distance (mm) the weighted rows' model points move from `before` to `after` (∞ without rows)."""
+    def world(p: Pose):
+        A = part_transforms(model, p.T_world_root, p.theta)[corr.part]
+        return jnp.einsum("nij,nj->ni", A[:, :3, :3], corr.p_model) + A[:, :3, 3]
+
+    live = corr.weight > 0
+    d = jnp.linalg.norm(world(after) - world(before), axis=-1)
+    n = jnp.sum(live)
+    return jnp.where(n > 0, jnp.sum(jnp.where(live, d, 0.0)) / jnp.maximum(n, 1), jnp.inf)
+
+
+class RefineSettings(eqx.Module):
+    """Numeric settings of the loop (arrays: vmap/grad over them costs no recompilation).
+
+    Attributes:
+        settle_motion: the pose has settled when the rows' model points move less than this (mm) in a round.
+        joint_prior: relative stiffness of the `JointPrior` (anchored at the refinement's start).
+        pose_prior_rotation, pose_prior_translation: relative stiffnesses of the `PosePrior` (anchored
+            where the rounds start, or at `refine_rounds`' `anchor`).
+        render_reuse_px: a round reuses the last round's render when no probe vertex moved more than this
+            many pixels since it was made (0: render every round).
+        pose_prior_rotation_abs, pose_prior_translation_abs: absolute stiffnesses of the `PosePrior`.
+        prior_follows_round: 1: the pose prior pulls toward each round's starting pose (M3T's damping per
+            iteration); 0: toward the anchor (the prediction) for the whole frame.
+    """
+
+    settle_motion: jax.Array
+    joint_prior: jax.Array
+    pose_prior_rotation: jax.Array
+    pose_prior_translation: jax.Array
+    render_reuse_px: jax.Array = eqx.field(default_factory=lambda: jnp.zeros(()))
+    pose_prior_rotation_abs: jax.Array = eqx.field(default_factory=lambda: jnp.zeros(()))
+    pose_prior_translation_abs: jax.Array = eqx.field(default_factory=lambda: jnp.zeros(()))
+    prior_follows_round: jax.Array = eqx.field(default_factory=lambda: jnp.zeros(()))
+
+
+class RoundState(eqx.Module):
+    """The carry of `refine_rounds` (named, never positional).
+
+    Attributes:
+        pose: the current pose; carries: one per modality (its `round_start` / `rows` carry).
+        round_index: rounds run; settled: the last round moved the rows' points less than the settle bound
+            (or no row was usable: the contours agree); status: the rounds' combined `Status`.
+        rows: the last round's fused set.
+        render, render_pose: the last render in the crops (None when no modality renders) and the pose it shows.
+        renders: renders made so far.
+    """
+
+    pose: Pose
+    carries: tuple
+    round_index: jax.Array
+    settled: jax.Array
+    status: jax.Array
+    rows: Correspondences
+    render: RenderOutput | None
+    render_pose: Pose
+    renders: jax.Array
+
+
+class RefineResult(eqx.Module):
+    """Outcome of `refine_rounds`: pose, carries, status (OK, MAX_STEPS if unsettled, ...), rounds, rows, renders."""
+
+    pose: Pose
+    carries: tuple
+    status: jax.Array
+    rounds: jax.Array
+    rows: Correspondences
+    renders: jax.Array
+
+
+def _round(modalities, ctx, contexts, states, frames, params, settings: RefineSettings, anchor: Pose, solver: SolverConfig,
+           state: RoundState) -> RoundState:
+    pose = state.pose
+    ren, renders = None, state.renders
+    if any(m.needs_render for m in modalities):
+        fresh = (state.round_index == 0) | (max_pixel_motion(ctx, state.render_pose, pose) > settings.render_reuse_px)
+        ren = jax.lax.cond(fresh, lambda: render_crops(ctx, pose), lambda: state.render)
+        renders = renders + fresh.astype(jnp.int32)
+    sets, carries = [], []
+    for m, mctx, s, f, c in zip(modalities, contexts, states, frames, state.carries):
+        rows, c = m.rows(mctx, s, f, c, pose, ren, state.round_index, params)
+        sets.append(rows)
+        carries.append(c)
+    fused = fuse_rows(modalities, sets, params)
+    sol = solve_pose(
+        ctx.model, fused, pose.T_world_root, pose.theta, solver,
+        prior=JointPrior(anchor.theta, settings.joint_prior),
+        pose_prior=PosePrior(jnp.where(settings.prior_follows_round > 0.5, pose.T_world_root, anchor.T_world_root),
+                             settings.pose_prior_rotation, settings.pose_prior_translation,
+                             settings.pose_prior_rotation_abs, settings.pose_prior_translation_abs),
+    )
+    new = Pose(sol.T_world_root, sol.theta)
+    settled = mean_motion(ctx.model, fused, pose, new) < settings.settle_motion
+    no_rows = sol.status == Status.TOO_FEW  # no usable row at all: the contours agree, settled
+    solve_status = jnp.where(no_rows | (sol.status == Status.MAX_STEPS), Status.OK, sol.status)
+    parts = [solve_status]
+    if ren is not None:
+        parts = [status_where(~jnp.any(ren.face_id >= 0), Status.OUT_OF_VIEW, Status.OK), solve_status,
+                 status_where(jnp.any(ren.overflow), Status.RENDER_OVERFLOW, Status.OK)]
+    render_pose = pose if ren is None else jax.tree.map(lambda a, b: jnp.where(fresh, a, b), pose, state.render_pose)
+    return RoundState(new, tuple(carries), state.round_index + 1, settled | no_rows,
+                      first_failure(*parts).astype(jnp.int32), fused, ren, render_pose, renders)
+
+
+def refine_rounds(
+    modalities: Sequence[Modality],
+    ctx: FrameContext,
+    states: Sequence[Any],
+    frames: Sequence[Any],
+    start: Pose,
+    params,
+    settings: RefineSettings,
+    rounds: int,
+    solver_steps: int,
+    anchor: Pose | None = None,
+    min_rounds: int = 0,
+    contexts: Sequence[FrameContext] | None = None,
+) -> RefineResult:
+    """Rounds of {rows of every modality at the current pose → one fused solve} until settled. Jittable.
+
+    Args:
+        modalities: the configured modalities (static); states, frames: their states and per-frame data.
+        ctx: the step's `FrameContext`; start: the pose the rounds start from (the prediction).
+        params: the tracker's parameters (weight rules read their factors there).
+        settings: settle bound and prior strengths (`RefineSettings`).
+        rounds: cap on rounds (static); solver_steps: Gauss-Newton steps per round (static).
+        anchor: where the joint and pose priors pull (default `start`).
+        min_rounds: rounds run before the pose may count as settled (static; e.g. a coarse-to-fine schedule).
+        contexts: one context per modality (with its prepared data); default `ctx` for all.
+
+    Returns:
+        `RefineResult`; its status is OK, MAX_STEPS (did not settle within `rounds`), OUT_OF_VIEW,
+        RENDER_OVERFLOW (the host re-plans and redoes the frame) or the solver's failure.
+    """
+    anchor = start if anchor is None else anchor
+    contexts = tuple(ctx for _ in modalities) if contexts is None else tuple(contexts)
+    solver = SolverConfig(max_steps=solver_steps)
+    carries0 = tuple(m.round_start(c, s, f, params) for m, c, s, f in zip(modalities, contexts, states, frames))
+
+    def body(state: RoundState) -> RoundState:
+        return _round(modalities, ctx, contexts, states, frames, params, settings, anchor, solver, state)
+
+    def cond(state: RoundState):
+        running = (state.status == Status.OK) | (state.status == Status.RENDER_OVERFLOW)
+        return (state.round_index < rounds) & ~(state.settled & (state.round_index >= min_rounds)) & running
+
+    zero_i, ok = jnp.zeros((), jnp.int32), jnp.asarray(Status.OK, jnp.int32)
+    renders_ = any(m.needs_render for m in modalities)
+
+    def probe():
+        return body(RoundState(start, carries0, zero_i, jnp.zeros((), bool), ok, None,
+                               render_crops(ctx, start) if renders_ else None, start, zero_i))
+
+    # The carry's rows and render have the structure of one round's: zeros of that shape (traced, not run).
+    shapes = jax.eval_shape(probe)
+    zeros = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), (shapes.rows, shapes.render))
+    first = RoundState(start, carries0, zero_i, jnp.zeros((), bool), ok, zeros[0], zeros[1], start, zero_i)
+    out = jax.lax.while_loop(cond, body, first)
+    status = first_failure(out.status, status_where(out.settled, Status.OK, Status.MAX_STEPS))
+    return RefineResult(out.pose, out.carries, status.astype(jnp.int32), out.round_index, out.rows, out.renders)

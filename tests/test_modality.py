@@ -1,0 +1,194 @@
+"""The modality protocol: a new modality is one module plus its registration; the fused loop; the pose prior."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxtrack as jt
+from jaxtrack.geometry import se3_inverse, se3_log
+from jaxtrack.modality import (
+    FrameContext,
+    FusionCounts,
+    Modality,
+    Pose,
+    RefineSettings,
+    cue_names,
+    fuse_rows,
+    modality_names,
+    refine_rounds,
+    register_modality,
+)
+from jaxtrack.solve import (
+    Cue,
+    CueWeights,
+    PosePrior,
+    concatenate_correspondences,
+    fuse_cue_weights,
+    make_correspondences,
+    solve_pose,
+)
+from jaxtrack.synth import perturb_pose, random_pose_scene
+
+
+# --- a toy modality, defined and registered here without touching any other file -----------------------
+@register_modality
+class FixedPoints(Modality):
+    """Known 2D-3D points (e.g. markers): the same rows every round, weight × a factor of its own."""
+
+    name = "fixed_points"
+    factor: float = eqx.field(static=True, default=1.0)
+
+    @classmethod
+    def from_config(cls, config):
+        return cls()
+
+    def start(self, ctx, state, host, params):
+        return host  # the rows come from the host, as a detector's would
+
+    def rows(self, ctx, state, frame, carry, pose, render, round_index, params):
+        return frame.with_weight(frame.weight), carry
+
+    def weight_scale(self, counts: FusionCounts, params, prediction):
+        return jnp.asarray(self.factor, counts.own.dtype)
+
+
+def _scene_rows(seed=0, noise_px=0.5, capacity=128):
+    scene = random_pose_scene(seed, num_points=100, noise_px=noise_px, num_cameras=1, dtype=np.float64)
+    corr = make_correspondences(scene.cameras, scene.pixel, scene.p_model, camera_index=scene.camera_index,
+                                capacity=capacity)
+    return scene, corr
+
+
+def _ctx(scene):
+    """The parts of a `FrameContext` a modality without images reads (none of the image fields)."""
+    return FrameContext(mesh=None, model=jt.rigid_model(jnp.float64), cameras=scene.cameras, crop_cameras=scene.cameras,
+                        offsets=jnp.zeros((1, 2), jnp.int32), frames=None, crops=jnp.zeros((1, 4, 4, 3)), previous=None,
+                        previous_crops=None, data_weight=None, render_t=None, pose_t=None, plan=None)
+
+
+def test_a_registered_modality_is_a_tracker_choice_with_its_own_tag():
+    assert "fixed_points" in modality_names()
+    tag = FixedPoints.cue
+    assert tag >= 16 and cue_names()[tag] == "fixed_points"
+    assert tag not in (int(Cue.REGION), int(Cue.FLOW), int(Cue.SIFT))
+    config = jt.TrackerConfig(cues=("region", "fixed_points"))
+    mods = config.modalities()
+    assert [m.name for m in mods] == ["levelset", "fixed_points"] and config.cue_names == ("region", "fixed_points")
+    from jaxtrack.cli import cue_choices
+
+    assert "fixed_points" in cue_choices()
+    with pytest.raises(ValueError, match="fixed_points"):  # the error lists the registered choices
+        jt.TrackerConfig(cues=("region", "colour"))
+    with pytest.raises(ValueError, match="already registered"):
+        register_modality(type("Other", (FixedPoints,), {"name": "flow"}))
+
+
+def test_refinement_loop_with_a_new_modality_alone():
+    """The tracker's loop solves a toy modality's rows: the pose converges and the rows carry its tag."""
+    scene, corr = _scene_rows()
+    rows = corr.with_weight(corr.weight)
+    rows = eqx.tree_at(lambda c: c.cue, rows, jnp.full_like(rows.cue, FixedPoints.cue))
+    T0 = jnp.asarray(perturb_pose(np.random.default_rng(1), scene.T_world_root, 0.1, 10.0))
+    mod = FixedPoints()
+    zero = jnp.zeros(())
+    settings = RefineSettings(jnp.asarray(1e-3), zero, zero, zero)
+    ctx = _ctx(scene)
+    frame = mod.start(ctx, None, rows, None)
+    res = jax.jit(lambda T: refine_rounds((mod,), ctx, (None,), (frame,), Pose(T, jnp.zeros((0,))), None, settings, 5, 10))(T0)
+    direct = solve_pose(jt.rigid_model(jnp.float64), rows, T0, config=jt.SolverConfig(max_steps=50))
+    assert int(res.status) == jt.Status.OK
+    assert np.abs(np.asarray(res.pose.T_world_root - direct.T_world_root)).max() < 1e-6
+    assert np.all(np.asarray(res.rows.cue)[np.asarray(res.rows.weight) > 0] == FixedPoints.cue)
+
+
+def test_fuse_rows_is_the_section_v_rule():
+    """The modalities' weight rules reproduce `fuse_cue_weights` on a region + flow + SIFT set."""
+    from jaxtrack.track._builtin_modalities import LevelSetRegion, OpticalFlow, SiftKeypoints
+
+    _, corr = _scene_rows(capacity=128)
+    rng = np.random.default_rng(0)
+    sets = []
+    for cue, n in ((Cue.REGION, 60), (Cue.FLOW, 30), (Cue.SIFT, 10)):
+        w = np.zeros(128)
+        w[:n] = rng.uniform(0.2, 3.0, n) if cue == Cue.FLOW else 1.0
+        c = corr.with_weight(jnp.asarray(w))
+        sets.append(eqx.tree_at(lambda c: c.cue, c, jnp.full_like(c.cue, int(cue))))
+    factors = CueWeights(region=0.7, flow=0.3, sift=2.0)
+
+    class P(eqx.Module):
+        weights: CueWeights
+
+    mods = (LevelSetRegion(), OpticalFlow(), SiftKeypoints())
+    for prediction in (False, True):
+        ours = fuse_rows(mods, sets, P(factors), prediction=prediction)
+        ref = fuse_cue_weights(concatenate_correspondences(*sets), factors, prediction=prediction)
+        np.testing.assert_allclose(np.asarray(ours.weight), np.asarray(ref.weight), rtol=1e-12)
+
+
+# --- the pose prior -------------------------------------------------------------------------------
+def test_pose_prior_zero_is_no_prior_and_strong_holds_the_anchor():
+    scene, corr = _scene_rows(noise_px=1.0)
+    model = jt.rigid_model(jnp.float64)
+    T0 = jnp.asarray(perturb_pose(np.random.default_rng(2), scene.T_world_root, 0.1, 10.0))
+    free = solve_pose(model, corr, T0)
+    zero = solve_pose(model, corr, T0, pose_prior=PosePrior(T0, 0.0, 0.0))
+    np.testing.assert_allclose(np.asarray(zero.T_world_root), np.asarray(free.T_world_root), atol=1e-9)
+    moved = []
+    for s in (1e-3, 1e-1, 1e2):
+        sol = solve_pose(model, corr, T0, pose_prior=PosePrior(T0, s, s))
+        moved.append(np.linalg.norm(np.asarray(se3_log(se3_inverse(T0) @ sol.T_world_root))))
+    full = np.linalg.norm(np.asarray(se3_log(se3_inverse(T0) @ free.T_world_root)))
+    assert moved[0] > 0.9 * full and moved[0] > moved[1] > moved[2] and moved[2] < 0.05 * full, (moved, full)
+
+
+def test_pose_prior_steadies_a_weakly_observed_direction():
+    """Points on a small disc facing the camera: its depth is weakly observed; the prior holds it, and the
+    well-observed directions still move to the data."""
+    rng = np.random.default_rng(3)
+    cam = jt.make_camera(np.diag([500.0, 500.0, 1.0]) + np.array([[0, 0, 160], [0, 0, 120], [0, 0, 0]]), 320, 240,
+                         dtype=jnp.float64)
+    ang = rng.uniform(0, 2 * np.pi, 60)
+    p_model = np.stack([20 * np.cos(ang), 20 * np.sin(ang), np.zeros(60)], -1)
+    T = np.eye(4)
+    T[:3, 3] = [0, 0, 2000.0]
+    p_cam = p_model + T[:3, 3]
+    px = 500 * p_cam[:, :2] / p_cam[:, 2:] + [160, 120] + rng.normal(0, 1.0, (60, 2))
+    corr = make_correspondences(cam, px, p_model, capacity=64)
+    model = jt.rigid_model(jnp.float64)
+    T0 = T.copy()
+    T0[:3, 3] += [3.0, -2.0, 0.0]
+    free = solve_pose(model, corr, jnp.asarray(T0))
+    held = solve_pose(model, corr, jnp.asarray(T0), pose_prior=PosePrior(jnp.asarray(T0), 0.01, 0.01))
+    dz_free = abs(float(free.T_world_root[2, 3]) - 2000.0)
+    dz_held = abs(float(held.T_world_root[2, 3]) - 2000.0)
+    assert dz_held < 0.5 * dz_free, (dz_free, dz_held)
+    # x, y are well observed: both solves fix the 3 / 2 mm offset
+    assert np.abs(np.asarray(held.T_world_root[:2, 3])).max() < 1.5
+
+
+def test_pose_prior_strength_derivative_matches_finite_differences():
+    scene, corr = _scene_rows(noise_px=1.0)
+    model = jt.rigid_model(jnp.float64)
+    T0 = jnp.asarray(perturb_pose(np.random.default_rng(4), scene.T_world_root, 0.1, 10.0))
+    config = jt.SolverConfig(max_steps=100, rtol=1e-12, atol=1e-12)
+
+    def t_of(s):
+        return solve_pose(model, corr, T0, config=config, pose_prior=PosePrior(T0, s, s)).T_world_root[:3, 3]
+
+    s, h = 0.05, 1e-4
+    fd = (np.asarray(t_of(s + h)) - np.asarray(t_of(s - h))) / (2 * h)
+    for jac in (jax.jacfwd(t_of)(s), jax.jacrev(t_of)(s)):
+        np.testing.assert_allclose(np.asarray(jac), fd, rtol=1e-3, atol=1e-3 * np.abs(fd).max())
+
+
+def test_pose_prior_vmaps_over_strengths():
+    scene, corr = _scene_rows(noise_px=1.0)
+    model = jt.rigid_model(jnp.float64)
+    T0 = jnp.asarray(perturb_pose(np.random.default_rng(5), scene.T_world_root, 0.1, 10.0))
+    strengths = jnp.asarray([0.0, 0.01, 1.0])
+    batched = jax.vmap(lambda s: solve_pose(model, corr, T0, pose_prior=PosePrior(T0, s, s)).T_world_root)(strengths)
+    for k, s in enumerate(np.asarray(strengths)):
+        one = solve_pose(model, corr, T0, pose_prior=PosePrior(T0, s, s)).T_world_root
+        np.testing.assert_allclose(np.asarray(batched[k]), np.asarray(one), atol=1e-8)
