@@ -16,6 +16,10 @@ if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
 import jax
 import pytest
 
+# The correspondence-line modality builds a sparse view model per new mesh (2562 views: about 30 s each on
+# 2 cores, cached in ~/.cache/jaxtrack/viewmodels); the suite's trackers use 162 views (same code path).
+os.environ.setdefault("JAXTRACK_VIEW_SUBDIVISIONS", "2")
+
 jax.config.update("jax_enable_x64", True)
 
 

@@ -85,8 +85,10 @@ def test_map_scores_counts_and_undefined_cases():
 
 # --- smoke runs ----------------------------------------------------------------------------------------------------
 def _no_new_program(before, after):
-    # Traced before (track_presets --quick or another smoke run here): nothing new; else exactly one compile.
-    assert after == before if before > 0 else after == 1, (before, after)
+    # At most one compile for the whole run (its frames and both rows share it: no recompilation per frame or
+    # per row). With the line modality (the default for rigid objects) a smoke run on another mesh than the
+    # earlier ones in this worker traces one program of its own (seen for the turntable run).
+    assert after - before <= 1, (before, after)
 
 
 @pytest.mark.xdist_group("tracker_quick")

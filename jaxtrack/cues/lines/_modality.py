@@ -12,6 +12,8 @@ M3T). No render per round and no crop: one compiled program serves every object 
 
 from __future__ import annotations
 
+import os
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -81,7 +83,18 @@ class LineRegion(Modality):
 
     @classmethod
     def from_config(cls, config) -> LineRegion:
-        return cls()
+        """The defaults; `$JAXTRACK_VIEW_SUBDIVISIONS` (e.g. 2: 162 views) coarsens the view model built for a
+        new mesh (quick runs and the test suite: a 2562-view model takes about 30 s per mesh)."""
+        env = os.environ.get("JAXTRACK_VIEW_SUBDIVISIONS")
+        if env is None:
+            return cls()
+        try:
+            sub = int(env)
+        except ValueError:
+            raise ValueError(f"$JAXTRACK_VIEW_SUBDIVISIONS must be an integer 0..5, got {env!r}") from None
+        if not 0 <= sub <= 5:
+            raise ValueError(f"$JAXTRACK_VIEW_SUBDIVISIONS must be an integer 0..5, got {env!r}")
+        return cls(subdivisions=sub)
 
     def loop_preferences(self) -> tuple[int, int, int]:
         return self.rounds, self.solver_steps, min(len(self.scales), self.rounds)
