@@ -413,12 +413,13 @@ def report(args, command, width_px, size, rows, m3t, load_start, load_end, elaps
             "## Per-stage breakdown (ms per frame = ms per call x calls per frame)",
             "",
             ("Each stage jitted on its own and timed on the inputs of the last tracked frame (state at t, frames t+1; "
-             f"medians of {args.repeats}); calls per frame from the rounds the refinement ran on that frame. Render: "
-             "the model into every camera's crop (at χ_t for the motion cues, once per refinement round, at χ_{t+1} "
-             "for the occlusion map). Flow and SIFT (device): `motion_correspondences` with that cue alone, minus its "
-             "render. Segmentation: Φ0 = band_sdf, local densities, the level-set iterations and the new densities of one "
-             "round (its render excluded; the feature channels, once per frame, are not timed). Shape matching: `contour_matches`. Solves: `solve_pose` on the fused rows. "
-             "Occlusion: texel observation, detection (eq. 9) and appearance update (eq. 10), its render excluded. "
+             f"medians of {args.repeats}); calls per frame from the rounds the refinement ran on that frame, through the "
+             "modality protocol (no copy of the loop). Frame context: the crops and, when a motion modality reads it, the "
+             "render at χ_t. Render: the model in every crop, once per refinement round for modalities that render, and "
+             "at χ_{t+1} when the occlusion map or a segmentation needs it. 'M: start / rows / update': that modality's "
+             "per-frame work, one round's rows (the level set: Φ0, segmentation and shape matching; lines: nearest view, "
+             "lines, distributions) and its end-of-frame update. Solves: `solve_pose` on the fused rows. Occlusion: "
+             "texel observation, detection (eq. 9) and appearance update (eq. 10), its render excluded. "
              "'whole step' is `Tracker.step` on the same inputs; separately jitted stages lose XLA's fusion across "
              "stages, so the sum and the whole differ."),
             "",
