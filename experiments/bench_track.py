@@ -121,8 +121,11 @@ def stage_breakdown(tracker, state, frames_np, repeats: int) -> dict:
     refined = any(not m.motion for m in modalities)
 
     ctx_fn = eqx.filter_jit(lambda st, fr, off: frame_context(setup, st, fr, off, crop_shape))
-    out["ms"]["frame context (crops, render at t)"] = _median_ms(
-        lambda: jax.tree.leaves((ctx_fn(state, frames_j, offsets).crops, ctx_fn(state, frames_j, offsets).render_t)), repeats)
+    def context_leaves():
+        ctx = ctx_fn(state, frames_j, offsets)
+        return jax.tree.leaves((ctx.crops, ctx.render_t))
+
+    out["ms"]["frame context (crops, render at t)"] = _median_ms(context_leaves, repeats)
     out["calls"]["frame context (crops, render at t)"] = 1
     ctx = ctx_fn(state, frames_j, offsets)
     rend = eqx.filter_jit(lambda c, p: render_crops(c, p).depth)
