@@ -70,8 +70,9 @@ class CameraView:
     frame_ids: list = dataclasses.field(default_factory=list)
     joints: dict = dataclasses.field(default_factory=dict)
 
-    def read_frame(self, index: int, gray: bool = False) -> np.ndarray:
-        """Frame `index` (position, not id) as float32 H×W×3 RGB (or H×W gray) in [0, 255].
+    def read_frame(self, index: int, gray: bool = False, dtype=np.float32) -> np.ndarray:
+        """Frame `index` (position, not id) as H×W×3 RGB (or H×W gray) in [0, 255], float32 by default
+        (`dtype`; None keeps the file's, e.g. uint8, which the tracker moves and stores at a quarter of the bytes).
 
         Raises:
             SequenceError: naming the image file when it cannot be read or its size is not the view's.
@@ -80,7 +81,7 @@ class CameraView:
             raise IndexError(f"{self.folder}: frame index {index} out of range [0, {len(self.frame_paths)})")
         path = self.frame_paths[index]
         try:
-            img = read_image(path, "grey" if gray else "rgb", np.float32)
+            img = read_image(path, "grey" if gray else "rgb", dtype)
         except (FileNotFoundError, ValueError) as e:
             raise SequenceError(str(e)) from e
         if img.shape[:2] != (self.height, self.width):

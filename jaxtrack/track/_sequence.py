@@ -212,7 +212,7 @@ def track_sequence(
     T_world_gt = None if gt is None else np.einsum("ij,fjk->fik", np.linalg.inv(T_cam0_world), gt)
 
     def frames(k):
-        return np.stack([seq.views[c].read_frame(k) for c in views])
+        return np.stack([seq.views[c].read_frame(k, dtype=None) for c in views])  # 8-bit files stay uint8
 
     bar = None
     if progress:

@@ -237,7 +237,7 @@ class TrackerState(eqx.Module):
 
     Attributes:
         T_world_root: (4, 4) root pose at t (model → world); theta: (J,) joint angles at t.
-        images: (C, H, W, 3) frames t (0-255).
+        images: (C, H, W, 3) frames t (0-255): uint8 when the tracker started on 8-bit frames, else floats.
         data_weight: (C, H, W) r(x) of frame t (0 = occluded), the flow cue's data weight.
         visible: (C, H, W) bool non-occluded object pixels of frame t (the SIFT detection mask).
         appearance: the appearance model f of the occlusion detection.
@@ -302,14 +302,17 @@ def _motion_inliers(corr: Correspondences, cameras: Camera, model: KinematicMode
 def frame_context(setup: TrackerSetup, state: TrackerState, frames, offsets, crop_shape) -> FrameContext:
     """The step's `FrameContext`: crops of frames t and t+1, r(x) of t on the crop, the render at χ_t."""
     cams = crop_camera(setup.cameras, offsets, crop_shape)
-    crop = jax.vmap(crop_window, in_axes=(0, 0, None))
     dtype = state.T_world_root.dtype
+    frames, previous, data_weight = frames.astype(dtype), state.images.astype(dtype), state.data_weight.astype(dtype)
+    if setup.config.uses_crop():
+        crop = jax.vmap(crop_window, in_axes=(0, 0, None))
+        crops, previous_crops, data_weight_crops = (crop(a, offsets, crop_shape) for a in (frames, previous, data_weight))
+    else:  # whole frames (offsets 0, crop_shape = the frame): no copies
+        crops, previous_crops, data_weight_crops = frames, previous, data_weight
     ctx = FrameContext(
         mesh=setup.mesh, model=setup.model, cameras=setup.cameras, crop_cameras=cams, offsets=offsets,
-        frames=frames, crops=crop(frames, offsets, crop_shape), previous=state.images.astype(dtype),
-        previous_crops=crop(state.images.astype(dtype), offsets, crop_shape),
-        data_weight=crop(state.data_weight.astype(dtype), offsets, crop_shape), render_t=None,
-        pose_t=Pose(state.T_world_root, state.theta), plan=setup.plan,
+        frames=frames, crops=crops, previous=previous, previous_crops=previous_crops,
+        data_weight=data_weight_crops, render_t=None, pose_t=Pose(state.T_world_root, state.theta), plan=setup.plan,
     )
     if not any(m.needs_render_t for m in setup.config.modalities()):
         return ctx
@@ -372,6 +375,7 @@ def track_step(
     config, model = setup.config, setup.model
     dtype = state.T_world_root.dtype
     num_cams = offsets.shape[0]
+    frames_in = frames  # kept in the state in their own dtype (uint8 from 8-bit video)
     frames = frames.astype(dtype)
     T_t, theta_t = state.T_world_root, state.theta
 
@@ -428,50 +432,57 @@ def track_step(
     occlusion = config.runs_occlusion()
     segmenting = any(m.contour and m.needs_render for m in modalities)
     ren_t1 = render_crops(ctx, final) if (occlusion or segmenting or motion_idx) else None
-    if ren_t1 is not None:
-        sil_t1 = ren_t1.face_id >= 0
-    else:
-        sil_t1 = jnp.zeros((num_cams,) + tuple(crop_shape), bool)
-    if occlusion:
-        obs = observe_texels(setup.atlas, crops_t1, ren_t1.depth, cams, T_new, params.occlusion, theta_new, model,
-                             config.occlusion_config)
-        occ = detect_occlusion(setup.atlas, state.appearance, obs, ren_t1, params.occlusion, config.occlusion_config)
-        appearance = update_appearance(state.appearance, obs, occ.occluded, params.occlusion, hold_new=occ.near_occlusion)
-        occluded = occ.occluded
-    else:
-        appearance = state.appearance
-        occluded = jnp.zeros_like(sil_t1)
-    full = state.data_weight.shape[1:]
-    if occlusion or motion_idx:
-        data_weight = jax.vmap(lambda o, off: paste_window(jnp.ones(full, dtype), jnp.where(o, 0.0, 1.0).astype(dtype), off))(
-            occluded, offsets)
-        visible = jax.vmap(lambda v, off: paste_window(jnp.zeros(full, bool), v, off))(sil_t1 & ~occluded, offsets)
-    else:  # nothing reads them: carried unchanged (no full-frame writes)
-        data_weight, visible = state.data_weight, state.visible
-
     # Evidence: each modality's, silhouette agreement, motion-cue agreement, visibility.
     evidence = {}
     for m, c, s, d, r in zip(modalities, contexts, state.modalities, data, carries):  # states of t: nothing learnt yet
         if refined or m.motion:
             evidence.update(m.evidence(c, s, d, r, final, ren_t1, params))
     has_segmentation = "segmentation" in evidence
-    phi = evidence["segmentation"] if has_segmentation else -jnp.ones((num_cams,) + tuple(crop_shape), dtype)
-    seg = phi > 0
-    inter = jnp.sum(seg & sil_t1, axis=(1, 2))
-    union = jnp.sum(seg | sil_t1, axis=(1, 2))
-    iou = jnp.where(union > 0, inter / jnp.maximum(union, 1), 0.0).astype(dtype)
-    if ren_t1 is not None:
-        seen = jnp.sum(sil_t1, axis=(1, 2)) > 0
-    else:
+    full = state.data_weight.shape[1:]
+    if ren_t1 is None and not has_segmentation:
+        # Nothing rendered or segmented (e.g. the line modality alone): no per-pixel maps to compute or carry.
+        appearance, data_weight, visible = state.appearance, state.data_weight, state.visible
+        phi = -jnp.ones((num_cams, 1, 1), dtype)
+        iou = jnp.zeros((num_cams,), dtype)
         seen = evidence.get("seen", jnp.ones((num_cams,), bool))
-    # Per part (limb): how much of its unoccluded silhouette the segmentation supports.
-    own = sil_t1 & ~occluded
-    part_ids = jnp.where(own, ren_t1.part_id, model.num_parts) if ren_t1 is not None else jnp.full(own.shape, model.num_parts)
-    part_pixels = jnp.zeros(model.num_parts + 1, dtype).at[part_ids.ravel()].add(1.0)[:-1]
-    part_inside = jnp.zeros(model.num_parts + 1, dtype).at[jnp.where(seg, part_ids, model.num_parts).ravel()].add(1.0)[:-1]
-    part_support = jnp.where(part_pixels > 0, part_inside / jnp.maximum(part_pixels, 1.0), -1.0)
-    if not has_segmentation:
-        part_support = -jnp.ones_like(part_support)
+        part_support = -jnp.ones((model.num_parts,), dtype)
+        occluded_fraction = jnp.zeros((num_cams,), dtype)
+    else:
+        sil_t1 = ren_t1.face_id >= 0 if ren_t1 is not None else jnp.zeros((num_cams,) + tuple(crop_shape), bool)
+        if occlusion:
+            obs = observe_texels(setup.atlas, crops_t1, ren_t1.depth, cams, T_new, params.occlusion, theta_new, model,
+                                 config.occlusion_config)
+            occ = detect_occlusion(setup.atlas, state.appearance, obs, ren_t1, params.occlusion, config.occlusion_config)
+            appearance = update_appearance(state.appearance, obs, occ.occluded, params.occlusion, hold_new=occ.near_occlusion)
+            occluded = occ.occluded
+        else:
+            appearance = state.appearance
+            occluded = jnp.zeros_like(sil_t1)
+        if occlusion or motion_idx:
+            data_weight = jax.vmap(lambda o, off: paste_window(jnp.ones(full, dtype), jnp.where(o, 0.0, 1.0).astype(dtype), off))(
+                occluded, offsets)
+            visible = jax.vmap(lambda v, off: paste_window(jnp.zeros(full, bool), v, off))(sil_t1 & ~occluded, offsets)
+        else:  # nothing reads them: carried unchanged (no full-frame writes)
+            data_weight, visible = state.data_weight, state.visible
+        phi = evidence["segmentation"] if has_segmentation else -jnp.ones((num_cams,) + tuple(crop_shape), dtype)
+        seg = phi > 0
+        inter = jnp.sum(seg & sil_t1, axis=(1, 2))
+        union = jnp.sum(seg | sil_t1, axis=(1, 2))
+        iou = jnp.where(union > 0, inter / jnp.maximum(union, 1), 0.0).astype(dtype)
+        if ren_t1 is not None:
+            seen = jnp.sum(sil_t1, axis=(1, 2)) > 0
+        else:
+            seen = evidence.get("seen", jnp.ones((num_cams,), bool))
+        # Per part (limb): how much of its unoccluded silhouette the segmentation supports.
+        own = sil_t1 & ~occluded
+        part_ids = jnp.where(own, ren_t1.part_id, model.num_parts) if ren_t1 is not None else jnp.full(own.shape, model.num_parts)
+        part_pixels = jnp.zeros(model.num_parts + 1, dtype).at[part_ids.ravel()].add(1.0)[:-1]
+        part_inside = jnp.zeros(model.num_parts + 1, dtype).at[jnp.where(seg, part_ids, model.num_parts).ravel()].add(1.0)[:-1]
+        part_support = jnp.where(part_pixels > 0, part_inside / jnp.maximum(part_pixels, 1.0), -1.0)
+        if not has_segmentation:
+            part_support = -jnp.ones_like(part_support)
+        n_obj = jnp.maximum(jnp.sum(sil_t1, axis=(1, 2)), 1)
+        occluded_fraction = (jnp.sum(occluded, axis=(1, 2)) / n_obj).astype(dtype)
     motion_rows = [data[i] for i in motion_idx]
     if motion_rows:
         motion = concatenate_correspondences(*motion_rows) if len(motion_rows) > 1 else motion_rows[0]
@@ -503,12 +514,12 @@ def track_step(
     counts = jnp.zeros((num_cams, len(modalities)), jnp.int32)
     if fused is not None:
         counts = jnp.stack([_counts(fused, num_cams, m.cue) for m in modalities], -1).astype(jnp.int32)
-    n_obj = jnp.maximum(jnp.sum(sil_t1, axis=(1, 2)), 1)
-    new_state = TrackerState(T_new, theta_new, frames, data_weight, visible, appearance, modality_states)
+    new_state = TrackerState(T_new, theta_new, frames_in.astype(state.images.dtype), data_weight, visible, appearance,
+                             modality_states)
     result = FrameResult(
         T_world_root=T_new, theta=theta_new, T_pred=T_pred, theta_pred=theta_pred, status=status.astype(jnp.int32),
         confidence=confidence, iou=iou, counts=counts, motion_inliers=inliers,
-        occluded_fraction=(jnp.sum(occluded, axis=(1, 2)) / n_obj).astype(dtype),
+        occluded_fraction=occluded_fraction,
         iterations=jnp.asarray(iterations, jnp.int32), region_phi=phi, part_support=part_support.astype(dtype),
     )
     return new_state, result

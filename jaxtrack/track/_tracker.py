@@ -198,6 +198,7 @@ class Tracker:
         self._default_params: dict = {}
         self.last_motion_px = 0.0
         self.crop_shape: tuple[int, int] | None = None  # kept while the object fits (one compile per class)
+        self.frame_dtype = np.dtype(self.dtype)  # the state's image dtype: uint8 after `start` on 8-bit frames
         self.joint_limits = joint_limits
         self.prepared: tuple | None = None
         self.pose_prior = pose_prior
@@ -220,7 +221,8 @@ class Tracker:
 
     # --- host helpers -----------------------------------------------------------------------------
     def check_frames(self, frames, name: str = "frames") -> np.ndarray:
-        """(C, H, W, 3) float32 frames from (C, H, W[, 3]) or, for one camera, (H, W[, 3]); errors name the problem."""
+        """(C, H, W, 3) frames from (C, H, W[, 3]) or, for one camera, (H, W[, 3]): uint8 stays uint8, anything
+        else becomes float32 (checked finite); errors name the problem."""
         frames = np.asarray(frames)
         H, W, C = self.cameras.height, self.cameras.width, self.num_cameras
         if C == 1 and frames.ndim in (2, 3) and frames.shape[:2] == (H, W):
@@ -232,6 +234,8 @@ class Tracker:
                              f"{W}x{H}, got {frames.shape}")
         if frames.shape[-1] == 1:
             frames = np.repeat(frames, 3, axis=-1)
+        if frames.dtype == np.uint8:  # 8-bit frames go to the step as they are (a quarter of the bytes)
+            return frames
         frames = frames.astype(np.float32)
         if not np.all(np.isfinite(frames)):
             raise ValueError(f"{name} contain non-finite pixel values")
@@ -315,10 +319,13 @@ class Tracker:
         # densities, so the next frame's first iterations use densities of the right regions, Section IV).
         offsets, crop_shape = self.crop(T, theta, boxes)
         setup = self.setup()
+        # Frames t live in the state as they came: 8-bit frames stay uint8 (a quarter of the bytes to copy and
+        # move), others in the tracker's dtype. Later frames are cast to the same dtype: one program.
+        self.frame_dtype = np.uint8 if frames.dtype == np.uint8 else np.dtype(self.dtype)
         states = _initial_modality_states(setup, jnp.asarray(frames, self.dtype), jnp.asarray(offsets), T, theta,
                                           self.params_for(crop_shape), crop_shape)
         return TrackerState(
-            T_world_root=T, theta=theta, images=jnp.asarray(frames, self.dtype),
+            T_world_root=T, theta=theta, images=jnp.asarray(self._frames_as_state(frames)),
             data_weight=jnp.ones((self.num_cameras, H, W), self.dtype), visible=sil, appearance=appearance,
             modalities=states,
         )
@@ -327,6 +334,15 @@ class Tracker:
         setup = self.setup()
         params = self.params_for((self.cameras.height, self.cameras.width)).occlusion
         return _initial_appearance_jit(setup, frames, T, theta, params)
+
+    def _frames_as_state(self, frames: np.ndarray) -> np.ndarray:
+        """Checked frames in the state's image dtype (`frame_dtype`, fixed by `start`)."""
+        dtype = self.frame_dtype
+        if frames.dtype == dtype:
+            return frames
+        if dtype == np.uint8:
+            return np.clip(np.rint(frames), 0, 255).astype(np.uint8)
+        return frames.astype(dtype)
 
     def previous_images(self, state: TrackerState) -> np.ndarray:
         """(C, H, W, 3) frames t on the host (for host-side modalities such as SIFT detection)."""
@@ -360,12 +376,12 @@ class Tracker:
         on_screen = np.isfinite(before).all(1) & (before[:, 2] >= 0) & (before[:, 0] < W) & (before[:, 3] >= 0) & (before[:, 1] < H)
         offsets, crop_shape = self.crop(state.T_world_root, state.theta, before) if on_screen.any() else (None, None)
         if offsets is None:  # behind a camera or outside every image: keep the pose, report it out of view
-            lost = eqx.tree_at(lambda s: s.images, state, jnp.asarray(frames, self.dtype))
+            lost = eqx.tree_at(lambda s: s.images, state, jnp.asarray(self._frames_as_state(frames)))
             timings["total_s"] = time.perf_counter() - start
             return lost, self._out_of_view(state), {"timings": timings, "offsets": None, "crop_shape": None}
         host = self.host_inputs(state, frames, timings)
         params = self.params_for(crop_shape) if params is None else params
-        frames_j = jnp.asarray(frames, self.dtype)
+        frames_j = jnp.asarray(self._frames_as_state(frames))
         step_start = time.perf_counter()
         for _ in range(3):
             setup = self.setup()
