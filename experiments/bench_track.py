@@ -96,9 +96,10 @@ def stage_breakdown(tracker, state, frames_np, repeats: int) -> dict:
     config, model, dtype = tracker.config, tracker.model, tracker.dtype
     frames = tracker.check_frames(frames_np)
     boxes = projected_boxes(tracker.mesh, tracker.cameras, state.T_world_root, state.theta, model)
-    offsets_np, crop_shape = tracker.crop(state.T_world_root, state.theta, boxes)
+    offsets_np, crop_shape, scales_np = tracker.windows(state.T_world_root, state.theta, boxes)
     params = tracker.params_for(crop_shape)
     offsets = jnp.asarray(offsets_np)
+    scales = None if scales_np is None else jnp.asarray(scales_np)
     frames_j = jnp.asarray(frames, dtype)
     setup = tracker.setup()
     config = setup.config  # "auto" resolved by the tracker
@@ -120,7 +121,7 @@ def stage_breakdown(tracker, state, frames_np, repeats: int) -> dict:
     final = Pose(result.T_world_root, result.theta)
     refined = any(not m.motion for m in modalities)
 
-    ctx_fn = eqx.filter_jit(lambda st, fr, off: frame_context(setup, st, fr, off, crop_shape))
+    ctx_fn = eqx.filter_jit(lambda st, fr, off: frame_context(setup, st, fr, off, crop_shape, scales))
     def context_leaves():
         ctx = ctx_fn(state, frames_j, offsets)
         return jax.tree.leaves((ctx.crops, ctx.render_t))
@@ -229,7 +230,10 @@ def worker(spec: dict) -> dict:
     T_world_gt = np.einsum("ij,fjk->fik", np.linalg.inv(T_cam0_world), gt)
     cues = ALL_CUES if spec["cues"] == "all" else ("region",)
     region = spec.get("region")
-    config = TrackerConfig(cues=cues) if region is None else TrackerConfig(cues=cues, region_modality=region)
+    extra = {} if region is None else {"region_modality": region}
+    if spec.get("working_shape"):
+        extra["working_shape"] = tuple(spec["working_shape"])
+    config = TrackerConfig(cues=cues, **extra)
     tracker = Tracker(load_mesh(seq.model_paths[1]), rig, config=config)
 
     def frames(k):
@@ -494,6 +498,8 @@ def main(argv=None):
     ap.add_argument("--configs", default="region:1,all:1,all:2,all:4", help="cue set (region|all) : cameras, comma-separated")
     ap.add_argument("--region", default=None,
                     help="the region modality of 'region' (levelset | lines; default: TrackerConfig's)")
+    ap.add_argument("--working-shape", default=None,
+                    help="HxW fixed working resolution of the crops (TrackerConfig.working_shape; default: the tracker's)")
     ap.add_argument("--frames", type=int, default=8, help="frames of the sequence (the first initialises, the second compiles)")
     ap.add_argument("--scale", type=float, default=1.0, help="image scale (1 = 640x480, f = 700)")
     ap.add_argument("--preset", default=None, help="a jaxtrack.synth preset instead of the textured box")
@@ -514,6 +520,13 @@ def main(argv=None):
     if args.frames < 3:
         raise SystemExit("bench_track: --frames must be ≥ 3 (initialise, compile, time)")
     configs = parse_configs(args.configs)
+    working_shape = None
+    if args.working_shape:
+        try:
+            working_shape = [int(v) for v in args.working_shape.lower().split("x")]
+            assert len(working_shape) == 2
+        except (ValueError, AssertionError):
+            raise SystemExit(f"bench_track: --working-shape must be HxW, e.g. 96x128, got {args.working_shape!r}") from None
     command = " ".join(["python experiments/bench_track.py", *(sys.argv[1:] if argv is None else argv)])
     started, load_start = time.perf_counter(), os.getloadavg()
     work = pathlib.Path(tempfile.mkdtemp(prefix="bench_track_"))
@@ -528,7 +541,8 @@ def main(argv=None):
                 continue
             cache = work / f"xla_{cues}_{cams}"  # a fresh, empty on-disk cache per configuration
             spec = {"sequence": str(seq), "cues": cues, "cameras": cams, "cache_dir": str(cache), "repeats": args.repeats,
-                    "breakdown": str(cams) in args.breakdown_cameras.split(","), "region": args.region}
+                    "breakdown": str(cams) in args.breakdown_cameras.split(","), "region": args.region,
+                    "working_shape": working_shape}
             t = time.perf_counter()
             if args.quick:  # in this process: no fresh interpreter, no cache, no warm run
                 cold, warm = worker(dict(spec, mode="cold", cache_dir=None, launched=time.time())), None

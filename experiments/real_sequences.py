@@ -41,16 +41,19 @@ M3T = {
 }
 
 
-def run_one(seq: str, cues: str, region: str, prior: str, out_dir: pathlib.Path, max_frames: int | None) -> dict:
+def run_one(seq: str, cues: str, region: str, prior: str, out_dir: pathlib.Path, max_frames: int | None,
+            working: str | None = None) -> dict:
     """`jaxtrack track` in a subprocess, then its CSV scored; returns the row."""
     folder, obj = SEQUENCES[seq]
     path = SHARED / "data" / "sequences" / folder
-    tag = f"{seq}_{cues}_{region}_{prior}".replace("+", "-").replace(",", "_")
+    tag = f"{seq}_{cues}_{region}_{prior}_{working}".replace("+", "-").replace(",", "_")
     csv = out_dir / f"{tag}.csv"
     cmd = [sys.executable, "-m", "jaxtrack.cli", "track", str(path), "-o", str(csv), "--obj-id", str(obj),
            "--cues", cues.replace("+", ","), "--pose-prior", prior, "--region", region, "--quiet"]
     if max_frames:
         cmd += ["--max-frames", str(max_frames)]
+    if working:
+        cmd += ["--working-shape", working]
     t = time.time()
     proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
     wall = time.time() - t
@@ -69,6 +72,7 @@ def run_one(seq: str, cues: str, region: str, prior: str, out_dir: pathlib.Path,
             crops.add(crop)
             continue
         steps.append(fr["timings"].get("total_s", np.nan))
+    region = region if not working else f"{region} @ {working}"
     return {
         "seq": seq, "cues": cues, "region": region, "prior": prior, "frames": int(later.sum()),
         "success": 100.0 * float(np.mean(ev.success[later])), "rot": float(np.nanmean(ev.rot_deg[later])),
@@ -120,6 +124,8 @@ def main(argv=None) -> int:
     ap.add_argument("--region", default="levelset", help="comma-separated region modalities")
     ap.add_argument("--prior", default="0", help="semicolon-separated pose priors 'R,T' (or one number for both)")
     ap.add_argument("--max-frames", type=int, default=None)
+    ap.add_argument("--working-shape", default=None,
+                    help="comma-separated crop working resolutions for jaxtrack track --working-shape (HxW or native)")
     ap.add_argument("--out", default=str(RESULTS / "real_sequences.md"))
     ap.add_argument("--quick", action="store_true", help="smoke run: 4 frames of the tea box, region only")
     args = ap.parse_args(argv)
@@ -132,14 +138,15 @@ def main(argv=None) -> int:
     missing = [s for s in seqs if not (SHARED / "data" / "sequences" / SEQUENCES[s][0]).is_dir()]
     if missing:
         raise SystemExit(f"real_sequences: {SHARED / 'data' / 'sequences'} lacks {', '.join(missing)}")
-    grid = [(s, c, r, p) for s in seqs for c in args.cues.split(",") for r in args.region.split(",")
-            for p in args.prior.split(";")]
+    workings = args.working_shape.split(",") if args.working_shape else [None]
+    grid = [(s, c, r, p, w) for s in seqs for c in args.cues.split(",") for r in args.region.split(",")
+            for p in args.prior.split(";") for w in workings]
     load0 = tuple(round(x, 2) for x in os.getloadavg())
     t0 = time.time()
     rows = []
     with tempfile.TemporaryDirectory(prefix="jaxtrack-real-") as tmp:
-        for s, c, r, p in grid:
-            row = run_one(s, c, r, p, pathlib.Path(tmp), args.max_frames)
+        for s, c, r, p, w in grid:
+            row = run_one(s, c, r, p, pathlib.Path(tmp), args.max_frames, w)
             rows.append(row)
             print(json.dumps(row), flush=True)
             text = report(rows, args, load0, tuple(round(x, 2) for x in os.getloadavg()), (time.time() - t0) / 60)

@@ -127,6 +127,9 @@ def _num_traces() -> int:
         return 0
 
 
+WORKING_SHAPE = "default"  # the tracker's crop working resolution (--working-shape; "default": TrackerConfig's)
+
+
 def run_jaxtrack(seq, subset: str, reset: bool, out_dir: pathlib.Path) -> dict:
     """track_sequence with the cue subset (all cameras of the sequence), scored on camera 0; counts the
     frames whose step was traced (compiled) and leaves them out of the ms per frame."""
@@ -139,7 +142,8 @@ def run_jaxtrack(seq, subset: str, reset: bool, out_dir: pathlib.Path) -> dict:
         traced.append(now != last[0])
         last[0] = now
 
-    run = track_sequence(seq, cues=tuple(subset.split("+")), reset_on_failure=reset, progress=False, on_frame=on_frame)
+    run = track_sequence(seq, cues=tuple(subset.split("+")), reset_on_failure=reset, progress=False, on_frame=on_frame,
+                         working_shape=WORKING_SHAPE)
     csv = out_dir / f"jaxtrack_{subset}_{'reset' if reset else 'noreset'}.csv"
     write_tracking_results(run, csv)
     step_s = [t["total_s"] for t, c in zip(run.timings[1:], traced[1:], strict=True) if not c]
@@ -276,6 +280,7 @@ def main(argv=None):
     ap.add_argument("--presets", default=",".join(PRESET_NAMES))
     ap.add_argument("--cues", default=",".join(SUBSETS), help="cue subsets joined with '+', comma-separated")
     ap.add_argument("--frames", type=int, default=None, help="frames per preset (default: the preset's own)")
+    ap.add_argument("--working-shape", default=None, help="HxW crop working resolution, or native (default: the tracker's)")
     ap.add_argument("--scale", type=float, default=1.0, help="image scale (1 = 640x480)")
     ap.add_argument("--without-reset", action="store_true", help="also run every configuration without resets")
     ap.add_argument("--no-m3t", action="store_true", help="skip the M3T baseline")
@@ -285,6 +290,11 @@ def main(argv=None):
     ap.add_argument("--out", default=None, help="markdown output (default experiments/results/track_presets.md; --quick: none)")
     ap.add_argument("--plot", default=None, help="bar chart (default experiments/results/track_presets.png; --quick: none)")
     args = ap.parse_args(argv)
+    if args.working_shape:
+        global WORKING_SHAPE
+        from jaxtrack.cli import _working_shape
+
+        WORKING_SHAPE = _working_shape(args.working_shape)
     if args.quick:  # the same sequence and configuration as bench_track.py --quick (one compiled program)
         args.presets, args.cues, args.frames, args.scale = "occluded-box", "region", 4, 0.15
     if args.frames is not None and args.frames < 2:

@@ -279,6 +279,19 @@ def _prior_pair(text: str) -> tuple[float, ...]:
     return tuple(values)
 
 
+def _working_shape(text: str):
+    """An argparse type: 'HxW' (integers ≥ 16, multiples of 4) or 'native' (None)."""
+    if text.strip().lower() == "native":
+        return None
+    try:
+        h, w = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected HxW (e.g. 96x128) or 'native', got {text!r}") from None
+    if h < 16 or w < 16 or h % 4 or w % 4:
+        raise argparse.ArgumentTypeError(f"expected H and W ≥ 16 and multiples of 4, got {text!r}")
+    return (h, w)
+
+
 def _index_list(text: str) -> list[int]:
     """An argparse type: comma-separated distinct non-negative integers."""
     try:
@@ -418,7 +431,8 @@ def _prepare_tracking(args, seq, out):
               "reset_on_failure": args.reset_on_failure, "max_frames": args.max_frames, "progress": not args.quiet,
               "on_frame": recorder, **({"joint_limits": True} if args.joint_limits else {}),
               **({"pose_prior": args.pose_prior} if getattr(args, "pose_prior", None) is not None else {}),
-              **({"region": args.region} if getattr(args, "region", None) is not None else {})}
+              **({"region": args.region} if getattr(args, "region", None) is not None else {}),
+              **({"working_shape": args.working_shape} if getattr(args, "working_shape", "default") != "default" else {})}
     return kwargs, recorder
 
 
@@ -677,6 +691,10 @@ def build_parser() -> argparse.ArgumentParser:
     track.add_argument("--region", choices=region_choices(), default=None,
                        help="the region modality that 'region' in --cues means (default auto: lines for a rigid object, "
                        "levelset for a URDF chain)")
+    track.add_argument("--working-shape", dest="working_shape", metavar="HxW|native", type=_working_shape, default="default",
+                       help="fixed working resolution of the crops (one compiled step whatever the object's size on "
+                       "screen), or 'native' for crops at the frame's resolution in size classes (default: the "
+                       "tracker's, jaxtrack.track.TrackerConfig.working_shape)")
     track.add_argument("--pose-prior", dest="pose_prior", metavar="R,T[,RA,TA,F]", type=_prior_pair,
                        help="the refinement's pose prior: relative stiffnesses (rotation, translation), optionally "
                        "absolute ones and F = 1 to pull toward each round's start (M3T) instead of the prediction "

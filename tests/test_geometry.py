@@ -169,3 +169,20 @@ def test_make_camera_accepts_whole_float_sizes_and_short_distortion():
     assert (cam.width, cam.height) == (640, 480) and isinstance(cam.width, int)
     np.testing.assert_array_equal(cam.dist, [0.1, -0.01, 0, 0, 0])
     np.testing.assert_array_equal(cam.K, K)
+
+
+def test_crop_camera_with_a_scale_projects_into_window_pixels():
+    """A point's pixel in the scaled crop camera is its full-frame pixel mapped by `full_to_window`."""
+    from jaxtrack.geometry import crop_camera, make_camera, project_points
+    from jaxtrack.image import full_to_window
+
+    K = np.array([[500.0, 0.0, 320.0], [0.0, 480.0, 240.0], [0.0, 0.0, 1.0]])
+    cam = make_camera(K, 640, 480, np.eye(3), np.zeros(3), dist=np.array([0.1, -0.05, 0.001, 0.002, 0.0]))
+    pts = jnp.asarray(np.random.default_rng(2).uniform([-80, -60, 400], [80, 60, 700], (20, 3)))
+    offset, scale = jnp.array([100.5, 150.25]), jnp.asarray(2.7)
+    full, _ = project_points(cam, pts)
+    win, _ = project_points(crop_camera(cam, offset, (96, 128), scale), pts)
+    np.testing.assert_allclose(win, full_to_window(full, offset, scale), atol=1e-4)
+    # Without a scale: the principal point shifted by the offset.
+    win1, _ = project_points(crop_camera(cam, offset, (96, 128)), pts)
+    np.testing.assert_allclose(win1, full - offset[::-1], atol=1e-4)

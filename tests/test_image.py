@@ -6,7 +6,15 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxtrack.image import crop_window, median_filter, paste_window
+from jaxtrack.image import (
+    crop_window,
+    full_to_window,
+    median_filter,
+    paste_window,
+    paste_window_scaled,
+    sample_window,
+    window_to_full,
+)
 
 
 def test_windows_at_traced_offsets_compile_once():
@@ -27,6 +35,42 @@ def test_windows_at_traced_offsets_compile_once():
     # Past the border the window is shifted back inside (dynamic_slice semantics).
     part, _ = roundtrip(jnp.array([11, 15]))
     np.testing.assert_array_equal(part, img[8:12, 10:16])
+
+
+def test_scaled_windows_one_program_exact_at_scale_one_and_box_at_scale_two():
+    rng = np.random.default_rng(1)
+    img = jnp.asarray(rng.uniform(0, 255, (24, 32, 3)), jnp.float32)
+
+    @eqx.filter_jit
+    @eqx.debug.assert_max_traces(max_traces=1)
+    def window(offset, scale):
+        return sample_window(img, offset, scale, (6, 8))
+
+    # Scale 1 at an integer offset: the plain crop, exactly.
+    np.testing.assert_array_equal(window(jnp.array([3.0, 5.0]), jnp.float32(1.0)), img[3:9, 5:13])
+    # Scale 2: each window pixel is the mean of its 2x2 block of frame pixels (antialiased).
+    box = np.asarray(img[2:14, 4:20]).reshape(6, 2, 8, 2, 3).mean(axis=(1, 3))
+    np.testing.assert_allclose(window(jnp.array([2.0, 4.0]), jnp.float32(2.0)), box, rtol=1e-5)
+    # Same program for another offset and scale (assert_max_traces above).
+    window(jnp.array([1.5, 0.25]), jnp.float32(1.7))
+    # Coordinates: window_to_full and full_to_window are inverses and put window pixel (0, 0) at the
+    # centre of the block it covers.
+    pts = jnp.asarray(rng.uniform(-2, 30, (5, 2)), jnp.float32)
+    off, sc = jnp.array([2.0, 4.0]), jnp.float32(2.0)
+    np.testing.assert_allclose(full_to_window(window_to_full(pts, off, sc), off, sc), pts, rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(window_to_full(jnp.zeros((1, 2)), off, sc), [[4.5, 2.5]])
+
+
+def test_scaled_paste_is_the_nearest_window_pixel_inside_the_window_only():
+    part = jnp.arange(2 * 3, dtype=jnp.float32).reshape(2, 3) + 1
+    full = paste_window_scaled(jnp.zeros((8, 10)), part, jnp.array([1.0, 2.0]), jnp.float32(2.0))
+    expected = np.zeros((8, 10))
+    expected[1:5, 2:8] = np.kron(np.asarray(part), np.ones((2, 2)))
+    np.testing.assert_array_equal(full, expected)
+    # Scale 1 at an integer offset: `paste_window`.
+    img = jnp.zeros((6, 7))
+    np.testing.assert_array_equal(paste_window_scaled(img, part, jnp.array([2.0, 3.0]), jnp.float32(1.0)),
+                                  paste_window(img, part, jnp.array([2, 3])))
 
 
 def test_median_filter_matches_scipy_and_respects_the_region():

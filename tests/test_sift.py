@@ -95,6 +95,28 @@ def test_roi_and_full_frame_detection_agree(textured):
     assert roi[:, 1].min() >= ys.min() - 1 and roi[:, 1].max() <= ys.max() + 1
 
 
+def test_cached_keypoints_of_t_plus_1_serve_the_next_pair(textured):
+    """With a cache, frame t+1's keypoints are kept and the next call reuses them for its frame t (one detection
+    per frame): the matches of the second pair are close to those detected afresh, and a different frame t is
+    detected (the cache holds another image)."""
+    seq = textured[0]
+    imgs, masks = seq["images"][0], seq["object_mask"][0]
+    cache, timings = {}, {}
+    sift_matches(imgs[0][None], imgs[1][None], masks[0][None], cache=cache)
+    assert np.array_equal(cache[0][0], imgs[1])
+    reused = sift_matches(imgs[1][None], imgs[2][None], masks[1][None], cache=cache, timings=timings)
+    fresh = sift_matches(imgs[1][None], imgs[2][None], masks[1][None])
+    n_reused, n_fresh = int(reused.count()[0]), int(fresh.count()[0])
+    assert n_reused >= 0.8 * n_fresh and n_fresh >= 30, (n_reused, n_fresh)
+    motion = np.asarray(reused.p_t1 - reused.p_t)[0][np.asarray(reused.valid[0])]
+    motion_fresh = np.asarray(fresh.p_t1 - fresh.p_t)[0][np.asarray(fresh.valid[0])]
+    np.testing.assert_allclose(np.median(motion, 0), np.median(motion_fresh, 0), atol=1.0)
+    # Another frame t than the cached t+1: no reuse (the keypoints of frame 0 are detected again).
+    again = sift_matches(imgs[0][None], imgs[1][None], masks[0][None], cache=cache)
+    first = sift_matches(imgs[0][None], imgs[1][None], masks[0][None])
+    np.testing.assert_array_equal(again.p_t, first.p_t)
+
+
 @pytest.mark.parametrize("background", ["flat", "coffee"])
 def test_homogeneous_object_gives_few_or_none(background, shared_data):
     cfg = SynthConfig(object="box", appearance="flat", background=background, motion="random", step_px=10, step_deg=3, frames=2)

@@ -201,12 +201,23 @@ def pixel_rays_world(camera: Camera, px: jax.Array):
     return origin, d_world
 
 
-def crop_camera(camera: Camera, offset, crop_shape: tuple[int, int]) -> Camera:
-    """The camera seeing only the crop at `offset` = (..., 2) (y0, x0): principal point shifted (jittable).
+def crop_camera(camera: Camera, offset, crop_shape: tuple[int, int], scale=None) -> Camera:
+    """The camera seeing only the window at `offset` = (..., 2) (y0, x0) with `scale` s (..., full-frame
+    pixels per window pixel; None: 1) of static size `crop_shape` (jittable).
 
-    The crop geometry of the tracker in one place: every modality and the renderer see a crop of a
-    static size class through this camera; pixels of the crop plus (x0, y0) are full-frame pixels.
+    The crop geometry of the tracker in one place: every modality and the renderer see the window through
+    this camera. Window pixel (x, y) is full-frame pixel (x0 + s·(x + ½) − ½, y0 + s·(y + ½) − ½)
+    (`jaxtrack.image.window_to_full`); with s = 1, pixels of the crop plus (x0, y0). Distortion is applied
+    before K, so it is unchanged.
     """
-    K = camera.K.at[..., 0, 2].add(-offset[..., 1].astype(camera.K.dtype))
-    K = K.at[..., 1, 2].add(-offset[..., 0].astype(camera.K.dtype))
+    dt = camera.K.dtype
+    oy, ox = offset[..., 0].astype(dt), offset[..., 1].astype(dt)
+    if scale is None:
+        K = camera.K.at[..., 0, 2].add(-ox)
+        K = K.at[..., 1, 2].add(-oy)
+        return Camera(K, camera.T_cam_world, camera.dist, width=crop_shape[1], height=crop_shape[0])
+    s = jnp.asarray(scale, dt)
+    K = camera.K.at[..., 0, 2].set((camera.K[..., 0, 2] - ox + 0.5) / s - 0.5)
+    K = K.at[..., 1, 2].set((camera.K[..., 1, 2] - oy + 0.5) / s - 0.5)
+    K = K.at[..., :2, :2].set(camera.K[..., :2, :2] / s[..., None, None])
     return Camera(K, camera.T_cam_world, camera.dist, width=crop_shape[1], height=crop_shape[0])

@@ -20,4 +20,8 @@ from ._pyramid import upsample_flow as upsample_flow
 from ._sampling import sample_bilinear as sample_bilinear
 from ._sampling import warp_bilinear as warp_bilinear
 from ._windows import crop_window as crop_window
+from ._windows import full_to_window as full_to_window
 from ._windows import paste_window as paste_window
+from ._windows import paste_window_scaled as paste_window_scaled
+from ._windows import sample_window as sample_window
+from ._windows import window_to_full as window_to_full

@@ -47,9 +47,13 @@ class FrameContext(eqx.Module):
         mesh, model, plan: the object and the rasteriser's plan.
         cameras: the full-frame rig (C stacked); crop_cameras: the same cameras seeing only their crop
             (principal point shifted by `offsets`, `crop_camera`).
-        offsets: (C, 2) int32 (y0, x0) of each crop in its full frame.
-        frames: (C, H, W, 3) frames t+1 (0-255); crops: (C, h, w, 3) their crops.
-        previous: (C, H, W, 3) frames t; previous_crops: (C, h, w, 3).
+        offsets: (C, 2) (y0, x0) of each crop in its full frame.
+        frames: (C, H, W, 3) frames t+1 (0-255) as given (uint8 from 8-bit video, else float; cast what you
+            read); crops: (C, h, w, 3) their crops (float).
+        scales: (C,) full-frame pixels per crop pixel (the fixed working resolution,
+            `TrackerConfig.working_shape`), or None: 1 (crops cut at the native resolution). Window pixel
+            (x, y) is full-frame pixel offset + s·(x + ½) − ½ (`jaxtrack.image.window_to_full`).
+        previous: (C, H, W, 3) frames t (as given); previous_crops: (C, h, w, 3) (float).
         data_weight: (C, h, w) r(x) of frame t on the crop (0 = occluded; the flow cue's data weight).
         render_t: `RenderOutput` with a leading C axis: the model at χ_t in the crops (shared by the
             motion modalities).
@@ -72,10 +76,19 @@ class FrameContext(eqx.Module):
     pose_t: Pose
     plan: RasterPlan = eqx.field(static=True)
     prepared: Any = None
+    scales: jax.Array | None = None
 
     @property
     def num_cameras(self) -> int:
         return self.offsets.shape[0]
+
+    def to_crop(self, points_full):
+        """(C, ..., 2) full-frame pixels (x, y) of each camera → its crop's pixels."""
+        return _to_crop(points_full, self.offsets, self.scales)
+
+    def to_full(self, points_crop):
+        """(C, ..., 2) crop pixels (x, y) of each camera → full-frame pixels."""
+        return _to_full(points_crop, self.offsets, self.scales)
 
     @property
     def crop_shape(self) -> tuple[int, int]:
@@ -100,6 +113,25 @@ class StartContext(eqx.Module):
     pose: Pose
     plan: RasterPlan = eqx.field(static=True)
     prepared: Any = None
+    scales: jax.Array | None = None
+
+
+def _window_terms(points, offsets, scales):
+    """(C, 1.., 2) (x0, y0) shift and (C, 1..) scale (or None) broadcast against (C, ..., 2) points."""
+    C, mid = offsets.shape[0], (1,) * (points.ndim - 2)
+    shift = offsets[:, ::-1].astype(points.dtype).reshape((C,) + mid + (2,))
+    s = None if scales is None else jnp.asarray(scales, points.dtype).reshape((C,) + mid + (1,))
+    return shift, s
+
+
+def _to_crop(points, offsets, scales):
+    shift, s = _window_terms(points, offsets, scales)
+    return points - shift if s is None else (points + 0.5 - shift) / s - 0.5
+
+
+def _to_full(points, offsets, scales):
+    shift, s = _window_terms(points, offsets, scales)
+    return points + shift if s is None else shift + s * (points + 0.5) - 0.5
 
 
 class FusionCounts(eqx.Module):

@@ -76,19 +76,28 @@ def model_mask(p_cam: npt.ArrayLike, faces: npt.ArrayLike, K: npt.ArrayLike, sha
     return mask.astype(bool)
 
 
-def segmentation_mask(region_phi: npt.ArrayLike, offset: npt.ArrayLike, shape: tuple[int, int]) -> np.ndarray:
+def segmentation_mask(region_phi: npt.ArrayLike, offset: npt.ArrayLike, shape: tuple[int, int], scale=None) -> np.ndarray:
     """Φ > 0 of one camera's crop pasted at its offset into an (H, W) bool mask (clipped at the borders).
 
     Args:
         region_phi: (h, w) the segmentation on the crop (> 0 inside).
         offset: (y0, x0) of the crop in the frame.
         shape: (H, W) frame size.
+        scale: full-frame pixels per crop pixel of a resampled crop (the working resolution), or None (1):
+            each frame pixel takes its nearest crop pixel.
     """
     phi = np.asarray(region_phi)
-    y0, x0 = (int(v) for v in np.asarray(offset))
     H, W = shape
-    out = np.zeros((H, W), bool)
     h, w = phi.shape
+    if scale is not None and float(scale) != 1.0:
+        s = float(scale)
+        oy, ox = (float(v) for v in np.asarray(offset))
+        i = np.floor((np.arange(H) + 0.5 - oy) / s).astype(int)
+        j = np.floor((np.arange(W) + 0.5 - ox) / s).astype(int)
+        inside = ((i >= 0) & (i < h))[:, None] & ((j >= 0) & (j < w))[None, :]
+        return inside & (phi[np.clip(i, 0, h - 1)][:, np.clip(j, 0, w - 1)] > 0)
+    y0, x0 = (round(float(v)) for v in np.asarray(offset))
+    out = np.zeros((H, W), bool)
     ys, xs = slice(max(y0, 0), min(y0 + h, H)), slice(max(x0, 0), min(x0 + w, W))
     if ys.start < ys.stop and xs.start < xs.stop:
         out[ys, xs] = phi[ys.start - y0 : ys.stop - y0, xs.start - x0 : xs.stop - x0] > 0
@@ -124,6 +133,7 @@ def overlay_frame(
     offsets: npt.ArrayLike | None = None,
     text: str | None = None,
     thickness: int = 1,
+    scales: npt.ArrayLike | None = None,
 ) -> np.ndarray:
     """One overlay frame: per camera the model contour (green) and the segmented contour (magenta),
     the views tiled side by side, a text line on top. Nothing else in the frames changes.
@@ -137,6 +147,7 @@ def overlay_frame(
         offsets: (C, 2) (y0, x0) of the crops (needed with `region_phi`).
         text: drawn at the top left of the tiled image.
         thickness: line width in pixels.
+        scales: (C,) full-frame pixels per crop pixel of resampled crops (the working resolution), or None.
 
     Returns:
         (H, C·W, 3) uint8 RGB.
@@ -157,7 +168,8 @@ def overlay_frame(
     for c in range(C):
         tile = np.ascontiguousarray(np.clip(images[c], 0, 255).astype(np.uint8))
         sil = model_mask(p_cam[c], faces, K[c], (H, W), None if dist is None else dist[c])
-        seg = None if region_phi is None else segmentation_mask(np.asarray(region_phi)[c], np.asarray(offsets)[c], (H, W))
+        seg = None if region_phi is None else segmentation_mask(np.asarray(region_phi)[c], np.asarray(offsets)[c], (H, W),
+                                                                None if scales is None else np.asarray(scales)[c])
         # Where the two contours coincide (good tracking) one would hide the other: with thick lines the
         # segmentation goes on top, a pixel thinner, so both stay visible; 1-px lines show the model's.
         if thickness >= 2:
@@ -275,4 +287,4 @@ class OverlayRecorder:
         p_cam = [vertices @ T[:3, :3].T + T[:3, 3] for T in np.asarray(record.T_cam_obj, np.float64)]
         text = f"frame {record.im_id}  {record.status}  conf {record.confidence:.2f}" + ("  RESET" if record.reset else "")
         self.writer.write(overlay_frame(record.images, p_cam, self.faces, self.K, self.dist, record.region_phi,
-                                        record.offsets, text, thickness))
+                                        record.offsets, text, thickness, record.scales))

@@ -88,11 +88,12 @@ class FrameRecord:
 
     Attributes:
         index: position of the frame in the sequence; im_id: its BOP image id.
-        images: (C, H, W, 3) float32 frames in [0, 255].
+        images: (C, H, W, 3) frames in [0, 255] (uint8 from 8-bit files, else float32).
         T_world_root: (4, 4) the reported pose (model → world, mm); T_cam_obj: (C, 4, 4) in each camera.
         status: `Status` name; confidence: in [0, 1].
         region_phi: (C, h, w) the segmentation Φ on the crops (> 0 inside), None for the first frame or
-            when the object was out of view; offsets: (C, 2) (y0, x0) of the crops, or None.
+            when the object was out of view; offsets: (C, 2) (y0, x0) of the crops, or None; scales: (C,)
+            full-frame pixels per crop pixel at the working resolution, or None (native crops).
         reset: tracking restarted from the ground truth after this frame (RBOT protocol).
         theta: (J,) the reported joint values (model units); empty for a rigid object.
     """
@@ -108,6 +109,7 @@ class FrameRecord:
     offsets: np.ndarray | None
     reset: bool
     theta: np.ndarray | None = None
+    scales: np.ndarray | None = None
 
 
 def _failed(T_est, T_gt, max_deg: float = 5.0, max_mm: float = 50.0) -> bool:
@@ -130,6 +132,7 @@ def track_sequence(
     joint_limits: bool = False,
     pose_prior: tuple | None = None,
     region: str | None = None,
+    working_shape: tuple[int, int] | None | str = "default",
     reset_on_failure: bool = False,
     max_frames: int | None = None,
     progress: bool = True,
@@ -149,6 +152,8 @@ def track_sequence(
         joint_limits: articulated objects: keep Θ within the URDF's limits (off by default, as the method).
         region: the region modality "region" in `cues` stands for ("levelset", ...; default
             `TrackerConfig`'s); ignored when `config` is given.
+        working_shape: (h, w) fixed working resolution of the crops, None for native-resolution crops in
+            size classes, "default": `TrackerConfig`'s; ignored when `config` is given.
         pose_prior: (rotation, translation) relative stiffnesses of the pose prior (default
             `jaxtrack.track.DEFAULT_POSE_PRIOR`; ignored when `params` is given).
         reset_on_failure: the RBOT protocol (needs ground truth for every frame).
@@ -205,7 +210,10 @@ def track_sequence(
     if joint_limits and articulated is None:
         raise ValueError(f"joint_limits: obj_id {obj_id} is rigid ({model_path.name}); limits come from a URDF")
     if config is None:
-        config = TrackerConfig(cues=tuple(cues)) if region is None else TrackerConfig(cues=tuple(cues), region_modality=region)
+        extra = {} if region is None else {"region_modality": region}
+        if not (isinstance(working_shape, str) and working_shape == "default"):
+            extra["working_shape"] = None if working_shape is None else tuple(int(v) for v in working_shape)
+        config = TrackerConfig(cues=tuple(cues), **extra)
     limits = (articulated["lower"], articulated["upper"]) if joint_limits else None
     tracker = Tracker(mesh, rig, model=model, config=config, params=params, joint_limits=limits,
                       **({} if pose_prior is None else {"pose_prior": pose_prior}))
@@ -221,13 +229,13 @@ def track_sequence(
         bar = tqdm(total=n, desc="tracking", unit="frame")
     T_cam_world = np.stack([np.asarray(seq.views[c].T_cam_world, np.float64) for c in views])
 
-    def report(k, images, T, phi=None, offsets=None):
+    def report(k, images, T, phi=None, offsets=None, scales=None):
         if on_frame is not None:
             on_frame(FrameRecord(
                 index=k, im_id=int(view0.frame_ids[k]), images=images, T_world_root=T,
                 T_cam_obj=np.einsum("cij,jk->cik", T_cam_world, T), status=status[-1], confidence=conf[-1],
                 region_phi=None if phi is None else np.asarray(phi), offsets=None if offsets is None else np.asarray(offsets),
-                reset=reset[-1], theta=thetas[-1],
+                reset=reset[-1], theta=thetas[-1], scales=None if scales is None else np.asarray(scales),
             ))
 
     start = time.perf_counter()
@@ -270,7 +278,8 @@ def track_sequence(
         else:
             lost_joints.append([])
         has_crop = info.get("offsets") is not None
-        report(k, images, T, result.region_phi if has_crop else None, info["offsets"] if has_crop else None)
+        report(k, images, T, result.region_phi if has_crop else None, info["offsets"] if has_crop else None,
+               info.get("scales") if has_crop else None)
         if bar is not None:
             bar.update(1)
             bar.set_postfix(status=status[-1], conf=f"{conf[-1]:.2f}")

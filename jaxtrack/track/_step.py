@@ -43,7 +43,7 @@ from ..cues.occlusion import (
 )
 from ..cues.sift import SiftParams, reprojection_errors
 from ..geometry import Camera, KinematicModel, crop_camera
-from ..image import crop_window, paste_window
+from ..image import crop_window, paste_window, paste_window_scaled, sample_window
 from ..modality import (
     FrameContext,
     Modality,
@@ -60,6 +60,9 @@ from ..solve import Correspondences, CueWeights, SolverConfig, concatenate_corre
 from . import _builtin_modalities  # noqa: F401  (registers region/levelset, flow, sift)
 
 CUES = ("region", "flow", "sift")
+# The crops' working resolution for rigid objects (TrackerConfig.working_shape "auto"), measured in the README's
+# working-resolution table against native crops (experiments/results/working_resolution.md).
+RIGID_WORKING_SHAPE = (96, 128)
 REGION_MODALITIES = ("levelset", "lines")
 
 
@@ -85,6 +88,13 @@ class TrackerConfig(eqx.Module):
         occlusion_config: histogram bins and window of the occlusion test.
         sift_mode: "surface" (rendered surface point under the keypoint) or "vertex" (the paper's
             closest projected visible vertex).
+        working_shape: (h, w) fixed working resolution of the crops, None, or "auto" (the default:
+            `RIGID_WORKING_SHAPE` for a rigid object without the level set, else None, `resolved`). With a shape, the region
+            around the object (box plus margin) is resampled to it with the scale as data
+            (`jaxtrack.image.sample_window`, `crop_camera(..., scale)`): one compiled step whatever the
+            object's size on screen, and the flow, occlusion and renders of the crops at that size. None:
+            crops cut at the native resolution in size classes (one compilation per class); the level set's
+            chains keep them (the working resolution is not measured on Table II).
     """
 
     cues: tuple = eqx.field(static=True, default=CUES)
@@ -98,6 +108,7 @@ class TrackerConfig(eqx.Module):
     prediction_steps: int = eqx.field(static=True, default=10)
     occlusion_config: OcclusionConfig = eqx.field(static=True, default_factory=OcclusionConfig)
     sift_mode: str = eqx.field(static=True, default="surface")
+    working_shape: tuple | str | None = eqx.field(static=True, default="auto")
 
     def __check_init__(self):
         cues = tuple(self.cues)
@@ -116,6 +127,12 @@ class TrackerConfig(eqx.Module):
             raise ValueError(f"TrackerConfig.cues names one modality twice ('region' is {self.region_modality!r}): {self.cues}")
         if self.flow_stride < 1 or self.prediction_steps < 1:
             raise ValueError("TrackerConfig: flow_stride and prediction_steps must be ≥ 1")
+        if self.working_shape is not None and not (isinstance(self.working_shape, str) and self.working_shape == "auto"):
+            ws = tuple(self.working_shape) if not isinstance(self.working_shape, str) else ()
+            f = self.region.density_factor
+            if len(ws) != 2 or any(not isinstance(v, int) or v < 16 or v % f for v in ws):
+                raise ValueError(f"TrackerConfig.working_shape must be (h, w): integers ≥ 16 divisible by the level "
+                                 f"set's density factor {f}, got {self.working_shape}")
         if self.sift_mode not in ("surface", "vertex"):
             raise ValueError(f"TrackerConfig.sift_mode must be 'surface' or 'vertex', got {self.sift_mode!r}")
 
@@ -125,10 +142,15 @@ class TrackerConfig(eqx.Module):
         return tuple(c if isinstance(c, str) else c.name for c in self.cues)
 
     def resolved(self, articulated: bool) -> TrackerConfig:
-        """This configuration with "auto" resolved for a rigid object (lines) or a chain (levelset)."""
-        if self.region_modality != "auto":
-            return self
-        return dataclasses.replace(self, region_modality="levelset" if articulated else "lines")
+        """This configuration with "auto" resolved for a rigid object (lines; crops at `RIGID_WORKING_SHAPE` unless
+        the level set is configured) or a chain (the level set; native-resolution crops)."""
+        out = self
+        if self.region_modality == "auto":
+            out = dataclasses.replace(out, region_modality="levelset" if articulated else "lines")
+        if isinstance(self.working_shape, str):  # "auto": not with the level set (measured at native crops only)
+            dense = any(m.name == "levelset" for m in out.modalities())
+            out = dataclasses.replace(out, working_shape=None if articulated or dense else RIGID_WORKING_SHAPE)
+        return out
 
     def modalities(self) -> tuple[Modality, ...]:
         """The configured `Modality` instances, in the order of `cues` ("auto" counts as rigid: "lines")."""
@@ -299,20 +321,39 @@ def _motion_inliers(corr: Correspondences, cameras: Camera, model: KinematicMode
     return jnp.sum(live & (err <= inlier_px)) / jnp.maximum(jnp.sum(live), 1)
 
 
-def frame_context(setup: TrackerSetup, state: TrackerState, frames, offsets, crop_shape) -> FrameContext:
-    """The step's `FrameContext`: crops of frames t and t+1, r(x) of t on the crop, the render at χ_t."""
-    cams = crop_camera(setup.cameras, offsets, crop_shape)
-    dtype = state.T_world_root.dtype
-    frames, previous, data_weight = frames.astype(dtype), state.images.astype(dtype), state.data_weight.astype(dtype)
-    if setup.config.uses_crop():
+def crop_frames(arrays, offsets, crop_shape, scales=None, dtype=jnp.float32):
+    """(C, H, W, ...) full-frame arrays → their (C, h, w, ...) windows: cut at `offsets` (scales None) or
+    resampled at `offsets` / `scales` (`jaxtrack.image.sample_window`, the fixed working resolution)."""
+    if scales is None:
         crop = jax.vmap(crop_window, in_axes=(0, 0, None))
-        crops, previous_crops, data_weight_crops = (crop(a, offsets, crop_shape) for a in (frames, previous, data_weight))
+        return tuple(crop(a, offsets, crop_shape).astype(dtype) for a in arrays)
+    sample = jax.vmap(lambda a, o, s: sample_window(a, o, s, crop_shape, dtype=dtype))
+    return tuple(sample(a, offsets, scales) for a in arrays)
+
+
+def paste_frames(full, part, offsets, scales=None):
+    """(C, h, w, ...) windows written back into (C, H, W, ...) full-frame arrays (the inverse of `crop_frames`)."""
+    if scales is None:
+        return jax.vmap(paste_window)(full, part, offsets)
+    return jax.vmap(paste_window_scaled)(full, part, offsets, scales)
+
+
+def frame_context(setup: TrackerSetup, state: TrackerState, frames, offsets, crop_shape, scales=None) -> FrameContext:
+    """The step's `FrameContext`: crops of frames t and t+1, r(x) of t on the crop, the render at χ_t
+    (`scales`: (C,) full-frame pixels per crop pixel at the fixed working resolution, or None)."""
+    cams = crop_camera(setup.cameras, offsets, crop_shape, scales)
+    dtype = state.T_world_root.dtype
+    previous = state.images
+    if setup.config.uses_crop():  # cut (or resampled) from the frames as they are, then cast
+        crops, previous_crops, data_weight_crops = crop_frames((frames, previous, state.data_weight), offsets, crop_shape,
+                                                               scales, dtype)
     else:  # whole frames (offsets 0, crop_shape = the frame): no copies
-        crops, previous_crops, data_weight_crops = frames, previous, data_weight
+        crops, previous_crops, data_weight_crops = (a.astype(dtype) for a in (frames, previous, state.data_weight))
     ctx = FrameContext(
         mesh=setup.mesh, model=setup.model, cameras=setup.cameras, crop_cameras=cams, offsets=offsets,
         frames=frames, crops=crops, previous=previous, previous_crops=previous_crops,
         data_weight=data_weight_crops, render_t=None, pose_t=Pose(state.T_world_root, state.theta), plan=setup.plan,
+        scales=scales,
     )
     if not any(m.needs_render_t for m in setup.config.modalities()):
         return ctx
@@ -325,23 +366,25 @@ def modality_context(ctx, setup: TrackerSetup, index: int):
     return ctx if prepared is None else eqx.tree_at(lambda c: c.prepared, ctx, prepared, is_leaf=lambda x: x is None)
 
 
-def start_modalities(setup: TrackerSetup, state: TrackerState, frames, host, offsets, params: TrackerParams, crop_shape):
+def start_modalities(setup: TrackerSetup, state: TrackerState, frames, host, offsets, params: TrackerParams, crop_shape,
+                     scales=None):
     """Step 1: the `FrameContext` and every modality's per-frame data. Returns (modalities, ctx, frame data)."""
     modalities = setup.config.modalities()
-    ctx = frame_context(setup, state, frames, offsets, crop_shape)
+    ctx = frame_context(setup, state, frames, offsets, crop_shape, scales)
     data = tuple(m.start(modality_context(ctx, setup, i), s, h, params)
                  for i, (m, s, h) in enumerate(zip(modalities, state.modalities, host)))
     return modalities, ctx, data
 
 
-def motion_correspondences(setup: TrackerSetup, state: TrackerState, frames, host, offsets, params: TrackerParams, crop_shape):
+def motion_correspondences(setup: TrackerSetup, state: TrackerState, frames, host, offsets, params: TrackerParams, crop_shape,
+                           scales=None):
     """The motion modalities' rows at t+1 (raw weights) from frames t, t+1 and the render at χ_t.
 
     Returns:
         (Correspondences of every motion modality (None without one), the crop render at χ_t, the crop cameras).
     """
     modalities, ctx, data = start_modalities(setup, state, frames.astype(state.T_world_root.dtype), host, offsets,
-                                             params, crop_shape)
+                                             params, crop_shape, scales)
     sets = [d for m, d in zip(modalities, data) if m.motion]
     corr = concatenate_correspondences(*sets) if sets else None
     return corr, ctx.render_t, ctx.crop_cameras
@@ -356,6 +399,7 @@ def track_step(
     offsets: jax.Array,
     params: TrackerParams,
     crop_shape: tuple[int, int],
+    scales: jax.Array | None = None,
 ) -> tuple[TrackerState, FrameResult]:
     """One frame t → t+1 (Section V). Jittable and pure; vmap over `params` sweeps cue weights.
 
@@ -365,9 +409,11 @@ def track_step(
         frames: (C, H, W, 3) frames t+1 (0-255).
         host: one entry per configured modality: what its `host_inputs` made on the host (the SIFT
             matches t → t+1 in full-frame pixels), None for most (`Tracker.host_inputs`).
-        offsets: (C, 2) int32 (y0, x0) of each camera's crop, chosen on the host around the object at t.
+        offsets: (C, 2) (y0, x0) of each camera's crop, chosen on the host around the object at t.
         params: `TrackerParams`.
-        crop_shape: (h, w) the static crop size class (shared by the cameras).
+        crop_shape: (h, w) the static crop size (a size class, or the fixed working resolution; shared by the cameras).
+        scales: (C,) full-frame pixels per crop pixel when the crops are resampled to the working
+            resolution (`TrackerConfig.working_shape`); None: crops cut at the native resolution.
 
     Returns:
         (new `TrackerState` at t+1, `FrameResult`).
@@ -375,12 +421,11 @@ def track_step(
     config, model = setup.config, setup.model
     dtype = state.T_world_root.dtype
     num_cams = offsets.shape[0]
-    frames_in = frames  # kept in the state in their own dtype (uint8 from 8-bit video)
-    frames = frames.astype(dtype)
+    frames_in = frames  # kept in the state in their own dtype (uint8 from 8-bit video); modalities cast what they read
     T_t, theta_t = state.T_world_root, state.theta
 
     # 1. Every modality starts its frame.
-    modalities, ctx, data = start_modalities(setup, state, frames, host, offsets, params, crop_shape)
+    modalities, ctx, data = start_modalities(setup, state, frames, host, offsets, params, crop_shape, scales)
     contexts = tuple(modality_context(ctx, setup, i) for i in range(len(modalities)))
     motion_idx = [i for i, m in enumerate(modalities) if m.motion]
 
@@ -459,9 +504,9 @@ def track_step(
             appearance = state.appearance
             occluded = jnp.zeros_like(sil_t1)
         if occlusion or motion_idx:
-            data_weight = jax.vmap(lambda o, off: paste_window(jnp.ones(full, dtype), jnp.where(o, 0.0, 1.0).astype(dtype), off))(
-                occluded, offsets)
-            visible = jax.vmap(lambda v, off: paste_window(jnp.zeros(full, bool), v, off))(sil_t1 & ~occluded, offsets)
+            data_weight = paste_frames(jnp.ones((num_cams,) + full, dtype), jnp.where(occluded, 0.0, 1.0).astype(dtype),
+                                       offsets, scales)
+            visible = paste_frames(jnp.zeros((num_cams,) + full, bool), sil_t1 & ~occluded, offsets, scales)
         else:  # nothing reads them: carried unchanged (no full-frame writes)
             data_weight, visible = state.data_weight, state.visible
         phi = evidence["segmentation"] if has_segmentation else -jnp.ones((num_cams,) + tuple(crop_shape), dtype)

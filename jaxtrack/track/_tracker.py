@@ -39,11 +39,10 @@ from ..cues.occlusion import (
 from ..cues.sift import SiftConfig, sift_params
 from ..geometry import Camera, KinematicModel, crop_camera, rigid_model, stack_cameras
 from ..geometry._validate import checked_rotation
-from ..image import crop_window
 from ..modality import Pose, StartContext
 from ..render import Mesh, RasterPlan, render, replan
 from ..solve import CueWeights
-from ._step import FrameResult, TrackerConfig, TrackerParams, TrackerSetup, TrackerState, track_step
+from ._step import FrameResult, TrackerConfig, TrackerParams, TrackerSetup, TrackerState, crop_frames, track_step
 
 _track_step_jit = eqx.filter_jit(track_step)
 
@@ -51,13 +50,19 @@ _track_step_jit = eqx.filter_jit(track_step)
 TRACKER_FLOW_FACTOR = 0.1
 
 
+def _as_array(scales):
+    return None if scales is None else jnp.asarray(scales)
+
+
 @eqx.filter_jit
-def _initial_modality_states(setup: TrackerSetup, frames, offsets, T, theta, params: TrackerParams, crop_shape):
+def _initial_modality_states(setup: TrackerSetup, frames, offsets, T, theta, params: TrackerParams, crop_shape,
+                             scales=None):
     """Every configured modality's state at the first frame (known pose), one compiled program."""
-    cams = crop_camera(setup.cameras, offsets, crop_shape)
-    crops = jax.vmap(crop_window, in_axes=(0, 0, None))(frames.astype(T.dtype), offsets, crop_shape)
+    cams = crop_camera(setup.cameras, offsets, crop_shape, scales)
+    (crops,) = crop_frames((frames,), offsets, crop_shape, scales, T.dtype)
     ren = jax.vmap(lambda cam: render(setup.mesh, cam, T, theta, setup.model, setup.plan))(cams)
-    ctx = StartContext(setup.mesh, setup.model, setup.cameras, cams, offsets, frames, crops, ren, Pose(T, theta), setup.plan)
+    ctx = StartContext(setup.mesh, setup.model, setup.cameras, cams, offsets, frames, crops, ren, Pose(T, theta),
+                       setup.plan, scales=scales)
     return tuple(m.init_state(ctx if setup.prepared_for(i) is None else eqx.tree_at(
         lambda c: c.prepared, ctx, setup.prepared_for(i), is_leaf=lambda x: x is None), params)
         for i, m in enumerate(setup.config.modalities()))
@@ -68,7 +73,7 @@ def _initial_appearance_jit(setup: TrackerSetup, frames, T, theta, params: Occlu
     """Silhouettes (C, H, W) and the appearance model seen at the known first pose, one compiled program
     (run op by op, its renders alone took 13 s of the tea box's 18 s start with a warm cache)."""
     ren = jax.vmap(lambda cam: render(setup.mesh, cam, T, theta, setup.model, setup.plan))(setup.cameras)
-    obs = observe_texels(setup.atlas, frames, ren.depth, setup.cameras, T, params, theta, setup.model,
+    obs = observe_texels(setup.atlas, frames.astype(T.dtype), ren.depth, setup.cameras, T, params, theta, setup.model,
                          setup.config.occlusion_config)
     appearance = update_appearance(init_appearance(setup.atlas, T.dtype), obs, jnp.zeros(ren.depth.shape, bool), params)
     return ren.face_id >= 0, appearance
@@ -199,6 +204,7 @@ class Tracker:
         self.last_motion_px = 0.0
         self.crop_shape: tuple[int, int] | None = None  # kept while the object fits (one compile per class)
         self.frame_dtype = np.dtype(self.dtype)  # the state's image dtype: uint8 after `start` on 8-bit frames
+        self.host_cache: dict = {}  # per-modality host state between frames (SIFT: the keypoints of frame t)
         self.joint_limits = joint_limits
         self.prepared: tuple | None = None
         self.pose_prior = pose_prior
@@ -260,24 +266,52 @@ class Tracker:
 
     def crop(self, T, theta, boxes: np.ndarray | None = None) -> tuple[np.ndarray, tuple[int, int]]:
         """Crop offsets (C, 2) and the shared static crop size around the object at (T, Θ)
-        (`boxes`: its projected boxes when already computed)."""
+        (`boxes`: its projected boxes when already computed). With a working resolution the windows also
+        have a scale: use `windows`."""
+        offsets, shape, _ = self.windows(T, theta, boxes)
+        return offsets, shape
+
+    def windows(self, T, theta, boxes: np.ndarray | None = None):
+        """(offsets (C, 2), crop shape (h, w), scales (C,) or None) of the crops around the object at (T, Θ).
+
+        Native resolution (`TrackerConfig.working_shape` None): integer offsets, a size class, scales None.
+        Working resolution: each camera's window covers its box plus the margin at the fixed shape,
+        scale s = full-frame pixels per crop pixel (at least 1 while the window fits in the frame), centred
+        on the box and kept inside the frame. (None, None, None) when the object is behind a camera.
+        """
         boxes = projected_boxes(self.mesh, self.cameras, T, theta, self.model) if boxes is None else boxes.copy()
         if not np.all(np.isfinite(boxes)):
-            return None, None
+            return None, None, None
         H, W = self.cameras.height, self.cameras.width
         if not self.config.uses_crop():  # no modality reads crops: whole frames, one program for every size
             self.crop_shape = (H, W)
-            return np.zeros((self.num_cameras, 2), np.int32), (H, W)
+            return np.zeros((self.num_cameras, 2), np.int32), (H, W), None
         # Keep what is on screen; a box entirely off screen still gets a crop at the border.
         boxes[:, [0, 2]] = np.clip(boxes[:, [0, 2]], 0, W - 1)
         boxes[:, [1, 3]] = np.clip(boxes[:, [1, 3]], 0, H - 1)
         margin = self.margin + int(np.ceil(1.5 * self.last_motion_px))
+        if self.config.working_shape is not None:
+            return self._scaled_windows(boxes, margin)
         # A new size class has 25% headroom and is kept while the object fits: each class is one
         # compilation of the step (measured 40 s idle, 110-150 s under load, against 1-5 s per frame).
         offsets, shape = region_crop(boxes, (H, W), margin, self.config.region.density_factor, keep=self.crop_shape,
                                      grow=1.25)
         self.crop_shape = shape
-        return offsets, shape
+        return offsets, shape, None
+
+    def _scaled_windows(self, boxes: np.ndarray, margin: float):
+        """Windows of the fixed working shape: one scale per camera (see `windows`)."""
+        H, W = self.cameras.height, self.cameras.width
+        h, w = self.config.working_shape
+        need_w = boxes[:, 2] - boxes[:, 0] + 1 + 2 * margin
+        need_h = boxes[:, 3] - boxes[:, 1] + 1 + 2 * margin
+        fit = min(H / h, W / w)  # the largest scale whose window lies inside the frame
+        scales = np.minimum(np.maximum(np.maximum(need_h / h, need_w / w), 1.0), fit)
+        cy, cx = (boxes[:, 1] + boxes[:, 3]) / 2, (boxes[:, 0] + boxes[:, 2]) / 2
+        y0 = np.clip(cy + 0.5 - scales * h / 2, 0.0, np.maximum(H - scales * h, 0.0))
+        x0 = np.clip(cx + 0.5 - scales * w / 2, 0.0, np.maximum(W - scales * w, 0.0))
+        self.crop_shape = (h, w)
+        return (np.stack([y0, x0], -1).astype(np.float32), (h, w), scales.astype(np.float32))
 
     def params_for(self, crop_shape) -> TrackerParams:
         """The parameters used for a crop size: the user's, or the defaults with ν = 0.001 |Ω|^0.7."""
@@ -308,22 +342,23 @@ class Tracker:
         if self.plan is None:
             self._replan(T, theta)
         self.prepare()
+        offsets, crop_shape, scales = self.windows(T, theta, boxes)
         if self.atlas is None:
             texel = self.texel_mm
-            if texel is None:  # about one pixel at the first pose
+            if texel is None:  # about one crop pixel at the first pose (a working-resolution pixel when resampled)
                 depth = float(np.asarray((self.cameras.T_cam_world[0] @ T)[2, 3]))
-                texel = max(0.25, depth / float(np.asarray(self.cameras.K[0, 0, 0])))
+                scale = 1.0 if scales is None else float(np.max(scales))
+                texel = max(0.25, scale * depth / float(np.asarray(self.cameras.K[0, 0, 0])))
             self.atlas = make_texture_atlas(self.mesh, texel_mm=texel)
         sil, appearance = self._initial_appearance(jnp.asarray(frames), T, theta)
         # The first frame's pose is known: every modality learns its state there (the level set's local
         # densities, so the next frame's first iterations use densities of the right regions, Section IV).
-        offsets, crop_shape = self.crop(T, theta, boxes)
         setup = self.setup()
         # Frames t live in the state as they came: 8-bit frames stay uint8 (a quarter of the bytes to copy and
         # move), others in the tracker's dtype. Later frames are cast to the same dtype: one program.
         self.frame_dtype = np.uint8 if frames.dtype == np.uint8 else np.dtype(self.dtype)
         states = _initial_modality_states(setup, jnp.asarray(frames, self.dtype), jnp.asarray(offsets), T, theta,
-                                          self.params_for(crop_shape), crop_shape)
+                                          self.params_for(crop_shape), crop_shape, _as_array(scales))
         return TrackerState(
             T_world_root=T, theta=theta, images=jnp.asarray(self._frames_as_state(frames)),
             data_weight=jnp.ones((self.num_cameras, H, W), self.dtype), visible=sil, appearance=appearance,
@@ -374,18 +409,20 @@ class Tracker:
         before = projected_boxes(self.mesh, self.cameras, state.T_world_root, state.theta, self.model)
         H, W = self.cameras.height, self.cameras.width
         on_screen = np.isfinite(before).all(1) & (before[:, 2] >= 0) & (before[:, 0] < W) & (before[:, 3] >= 0) & (before[:, 1] < H)
-        offsets, crop_shape = self.crop(state.T_world_root, state.theta, before) if on_screen.any() else (None, None)
+        offsets, crop_shape, scales = (self.windows(state.T_world_root, state.theta, before) if on_screen.any()
+                                       else (None, None, None))
         if offsets is None:  # behind a camera or outside every image: keep the pose, report it out of view
             lost = eqx.tree_at(lambda s: s.images, state, jnp.asarray(self._frames_as_state(frames)))
             timings["total_s"] = time.perf_counter() - start
-            return lost, self._out_of_view(state), {"timings": timings, "offsets": None, "crop_shape": None}
+            return lost, self._out_of_view(state), {"timings": timings, "offsets": None, "crop_shape": None, "scales": None}
         host = self.host_inputs(state, frames, timings)
         params = self.params_for(crop_shape) if params is None else params
         frames_j = jnp.asarray(self._frames_as_state(frames))
         step_start = time.perf_counter()
         for _ in range(3):
             setup = self.setup()
-            new_state, result = _track_step_jit(setup, state, frames_j, host, jnp.asarray(offsets), params, crop_shape)
+            new_state, result = _track_step_jit(setup, state, frames_j, host, jnp.asarray(offsets), params, crop_shape,
+                                                _as_array(scales))
             if int(result.status) != Status.RENDER_OVERFLOW:
                 break
             self._replan(result.T_world_root, result.theta)
@@ -395,7 +432,7 @@ class Tracker:
         moved = projected_boxes(self.mesh, self.cameras, result.T_world_root, result.theta, self.model)
         if np.all(np.isfinite(moved)) and np.all(np.isfinite(before)):
             self.last_motion_px = float(np.max(np.abs(moved - before)))
-        return new_state, result, {"timings": timings, "offsets": offsets, "crop_shape": crop_shape}
+        return new_state, result, {"timings": timings, "offsets": offsets, "crop_shape": crop_shape, "scales": scales}
 
     def _out_of_view(self, state: TrackerState) -> FrameResult:
         C, dt = self.num_cameras, self.dtype

@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 
 from ...geometry import Camera, KinematicModel, crop_camera
-from ...image import crop_window
+from ...image import crop_window, sample_window
 from ...modality import (
     FrameContext,
     FusionCounts,
@@ -69,10 +69,15 @@ class LevelSetCarry(eqx.Module):
     num_matches: jax.Array
 
 
-def _crop_densities(dens: LocalDensities, offsets, coarse_shape) -> LocalDensities:
-    """(C, 2, Hc, Wc, K) full-frame coarse fields → the crops' (C, 2, hc, wc, K)."""
-    f = jax.vmap(lambda m, off: jnp.moveaxis(crop_window(jnp.moveaxis(m, 0, 2), off, coarse_shape), 2, 0))
-    return LocalDensities(f(dens.mean, offsets), f(dens.var, offsets))
+def _crop_densities(dens: LocalDensities, offsets, coarse_shape, scales=None) -> LocalDensities:
+    """(C, 2, Hc, Wc, K) full-frame coarse fields → the crops' (C, 2, hc, wc, K) (`offsets` on the coarse
+    grid; `scales`: resampled crops, else None)."""
+    if scales is None:
+        f = jax.vmap(lambda m, off: jnp.moveaxis(crop_window(jnp.moveaxis(m, 0, 2), off, coarse_shape), 2, 0))
+        return LocalDensities(f(dens.mean, offsets), f(dens.var, offsets))
+    g = jax.vmap(lambda m, off, sc: jnp.moveaxis(sample_window(jnp.moveaxis(m, 0, 2), off, sc, coarse_shape, antialias=False,
+                                                               dtype=m.dtype), 2, 0))
+    return LocalDensities(g(dens.mean, offsets, scales), g(dens.var, offsets, scales))
 
 
 @register_modality
@@ -114,7 +119,7 @@ class LevelSetRegion(Modality):
             return phi0, _densities(feature_channels(image, self.config.texture).astype(dtype), phi0, rp.density_band, rp, f)
 
         phi0, dens = jax.vmap(per_camera)(ctx.crops, ctx.render.face_id)
-        return _paste_state(empty, phi0, dens, ctx.offsets, f)
+        return _paste_state(empty, phi0, dens, ctx.offsets, f, ctx.scales)
 
     def start(self, ctx: FrameContext, state: RegionState, host, params) -> LevelSetFrame:
         f = self.config.density_factor
@@ -122,7 +127,8 @@ class LevelSetRegion(Modality):
         dtype = ctx.pose_t.T_world_root.dtype
         features = jax.vmap(lambda im: feature_channels(im, self.config.texture))(ctx.crops).astype(dtype)
         coarse = (ctx.crop_shape[0] // f, ctx.crop_shape[1] // f)
-        carried = _crop_densities(state.densities, ctx.offsets // f, coarse)
+        coarse_offsets = ctx.offsets // f if ctx.scales is None else ctx.offsets / f
+        carried = _crop_densities(state.densities, coarse_offsets, coarse, ctx.scales)
         return LevelSetFrame(features, jax.tree.map(lambda a: a.astype(dtype), carried), state.has_densities)
 
     def round_start(self, ctx: FrameContext, state, frame: LevelSetFrame, params) -> LevelSetCarry:
@@ -172,7 +178,7 @@ class LevelSetRegion(Modality):
             lambda p0, p, s, pm, pid: contour_matches(p0, p, s, pm, pid, rp, config.capacity, config.matching)
         )(phi0, phi, sil, render.p_model, render.part_id)
         num_cams = ctx.offsets.shape[0]
-        target = target + ctx.offsets[:, None, ::-1].astype(dtype)
+        target = ctx.to_full(target)  # crop → full-frame pixels
         cam_index = jnp.broadcast_to(jnp.arange(num_cams, dtype=jnp.int32)[:, None], weight.shape)
         corr = correspondences_from_pixels(
             ctx.cameras, target.reshape(-1, 2), cam_index.reshape(-1), p_model.reshape(-1, 3), part.reshape(-1),
@@ -191,7 +197,7 @@ class LevelSetRegion(Modality):
         """The last segmentation and the densities estimated from it, in full-frame coordinates."""
         rp, f = params.region, self.config.density_factor
         dens = jax.vmap(lambda feats, p: _densities(feats, p, rp.density_band, rp, f))(frame.features, carry.phi)
-        return _paste_state(state, carry.phi, dens, ctx.offsets, f)
+        return _paste_state(state, carry.phi, dens, ctx.offsets, f, ctx.scales)
 
     def evidence(self, ctx, state, frame, carry: LevelSetCarry, pose, render, params) -> dict:
         return {"segmentation": carry.phi}

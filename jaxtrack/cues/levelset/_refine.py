@@ -12,7 +12,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ...image import paste_window
+from ...image import paste_window, paste_window_scaled
 from ._densities import LocalDensities, data_term, local_densities
 from ._energy import RegionParams, evolve, region_memberships
 from ._matching import closest_point_matches_at, regularised_matches
@@ -179,15 +179,25 @@ def segment(features, phi0, phi_init, densities: LocalDensities, params: RegionP
     return phi, new
 
 
-def _paste_state(state: RegionState, phi, dens: LocalDensities, offsets, f: int) -> RegionState:
-    """Crop-sized Φ and densities (C, ...) written into the full-frame `RegionState`."""
+def _paste_state(state: RegionState, phi, dens: LocalDensities, offsets, f: int, scales=None) -> RegionState:
+    """Crop-sized Φ and densities (C, ...) written into the full-frame `RegionState` (`scales`: (C,) full-frame
+    pixels per crop pixel of resampled crops, else None; Φ keeps its crop-pixel units)."""
     dtype = phi.dtype
-    new_phi = jax.vmap(lambda full, part, off: paste_window(jnp.full_like(full, -1.0), part, off))(state.phi.astype(dtype), phi, offsets)
-    paste_dens = jax.vmap(lambda full, part, off: jnp.moveaxis(paste_window(jnp.moveaxis(full, 0, 2), jnp.moveaxis(part, 0, 2), off // f), 2, 0))
+
+    def paste(full, part, offs):  # (C, H, W, ...) ← (C, h, w, ...)
+        if scales is None:
+            return jax.vmap(paste_window)(full, part, offs)
+        return jax.vmap(paste_window_scaled)(full, part, offs, scales)
+
+    def paste_field(full, part):  # (C, 2, Hc, Wc, K) ← (C, 2, hc, wc, K): the coarse grid's window is offset / f
+        coarse = offsets // f if scales is None else offsets / f
+        return jnp.moveaxis(paste(jnp.moveaxis(full, 1, 3), jnp.moveaxis(part, 1, 3), coarse), 3, 1)
+
+    new_phi = paste(jnp.full_like(state.phi.astype(dtype), -1.0), phi, offsets)
     return RegionState(
         phi=new_phi,
         densities=LocalDensities(
-            paste_dens(state.densities.mean.astype(dtype), dens.mean, offsets), paste_dens(state.densities.var.astype(dtype), dens.var, offsets)
+            paste_field(state.densities.mean.astype(dtype), dens.mean), paste_field(state.densities.var.astype(dtype), dens.var)
         ),
         has_densities=jnp.ones_like(state.has_densities),
     )

@@ -50,7 +50,7 @@ def image_colours(image, pixels):
     h, w = image.shape[:2]
     x = jnp.clip(jnp.floor(pixels[..., 0] + 0.5), 0, w - 1).astype(jnp.int32)
     y = jnp.clip(jnp.floor(pixels[..., 1] + 0.5), 0, h - 1).astype(jnp.int32)
-    return image[y, x]
+    return image[y, x].astype(pixels.dtype)
 
 
 def _normalised(counts):

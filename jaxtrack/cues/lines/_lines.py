@@ -260,7 +260,7 @@ def sample_lines(image, center, normal, scale, config: LineConfig = DEFAULT_LINE
     inside = in_img[:, 0] & jnp.take_along_axis(in_img, jnp.broadcast_to(last, (x.shape[0], 1)), axis=1)[:, 0]
     xi = jnp.clip(x, 0, w - 1).astype(jnp.int32)
     yi = jnp.clip(y, 0, h - 1).astype(jnp.int32)
-    colour = image[yi, xi]
+    colour = image[yi, xi].astype(dtype)  # gathered, then cast (8-bit frames stay 8-bit)
     delta_r = (u0 + sign * (L - 1) / 2 - c_dom) / n_dom
     return LineSamples(
         pixel=jnp.stack([xi, yi], -1), colour=colour, mask=mask & in_img, delta_r=delta_r,
@@ -363,7 +363,7 @@ def measure_lines(
         model, theta: kinematic tree and (J,) joints for `ContourPoints` of several parts.
     """
     dtype = camera.K.dtype
-    image = jnp.asarray(image, dtype)
+    image = jnp.asarray(image)  # uint8 or float; the samples are cast
     T_world_root = jnp.asarray(T_world_root, dtype)
     scale = _scale(scale, config)
     points = _as_points(points, camera, T_world_root)

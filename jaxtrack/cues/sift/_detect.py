@@ -171,7 +171,24 @@ def _dilate(mask, radius: int):
         return cv2.dilate(mask.astype(np.uint8), kernel).astype(bool)
 
 
-def sift_matches(images_t, images_t1, region_t, config: SiftConfig = SiftConfig(), region_t1=None, timings=None, dtype=jnp.float32):
+def _reuse_keypoints(cache: dict | None, c: int, image, region):
+    """The keypoints of `image` detected by the previous call (as its frame t+1), kept where `region` is set;
+    None when the cache holds another image."""
+    entry = None if cache is None else cache.get(c)
+    if entry is None or entry[0].shape != np.shape(image) or not np.array_equal(entry[0], image):
+        return None
+    xy, desc = entry[1], entry[2]
+    if len(xy) == 0:
+        return xy, desc
+    h, w = region.shape
+    xi = np.clip(np.floor(xy[:, 0] + 0.5).astype(int), 0, w - 1)
+    yi = np.clip(np.floor(xy[:, 1] + 0.5).astype(int), 0, h - 1)
+    keep = region[yi, xi]
+    return xy[keep], desc[keep]
+
+
+def sift_matches(images_t, images_t1, region_t, config: SiftConfig = SiftConfig(), region_t1=None, timings=None, dtype=jnp.float32,
+                 cache: dict | None = None):
     """Detect and match SIFT keypoints of C cameras between frames t and t+1 (host side).
 
     Args:
@@ -180,6 +197,9 @@ def sift_matches(images_t, images_t1, region_t, config: SiftConfig = SiftConfig(
             `visible`): where keypoints of frame t may lie.
         region_t1: (C, H, W) bool search region at t+1 (default: `region_t` dilated by `search_px`).
         timings: optional dict; "detect_s" and "match_s" are added to it.
+        cache: optional dict carried from call to call (a tracker's): frame t+1's keypoints are kept in it,
+            and when the next call's frame t is that image, its keypoints are reused (those inside
+            `region_t`) instead of detected again: one detection per frame instead of two.
 
     Returns:
         `SiftMatches` of capacity `config.capacity` per camera (best ratios first).
@@ -200,8 +220,11 @@ def sift_matches(images_t, images_t1, region_t, config: SiftConfig = SiftConfig(
     for c in range(num_cameras):
         search = _dilate(region_t[c], config.search_px) if region_t1 is None else np.asarray(region_t1[c], bool)
         start = time.perf_counter()
-        xy_a, desc_a = detect_sift(images_t[c], region_t[c], config, detector)
+        reused = _reuse_keypoints(cache, c, images_t[c], region_t[c])
+        xy_a, desc_a = reused if reused is not None else detect_sift(images_t[c], region_t[c], config, detector)
         xy_b, desc_b = detect_sift(images_t1[c], search, config, detector)
+        if cache is not None:
+            cache[c] = (np.array(images_t1[c], copy=True), xy_b, desc_b)
         mid = time.perf_counter()
         ia, ib, _ = match_descriptors(desc_a, desc_b, config.ratio)
         match_s += time.perf_counter() - mid

@@ -40,13 +40,13 @@ class SiftKeypoints(Modality):
 
     def host_inputs(self, tracker, state, frames, timings=None) -> SiftMatches:
         """OpenCV SIFT matches t → t+1 in full-frame pixels (C, N) inside the visible region of frame t."""
+        cache = tracker.host_cache.setdefault(self.name, {})  # frame t's keypoints: detected last frame as t+1
         return sift_matches(tracker.previous_images(state), frames, tracker.visible_mask(state), tracker.sift,
-                            timings=timings, dtype=tracker.dtype)
+                            timings=timings, dtype=tracker.dtype, cache=cache)
 
     def start(self, ctx: FrameContext, state, host: SiftMatches, params) -> Correspondences:
-        shift = ctx.offsets[:, None, ::-1].astype(host.p_t.dtype)  # (y0, x0) → (x0, y0) per camera
-        local = SiftMatches(host.p_t - shift, host.p_t1 - shift, host.valid)
-        local = remove_gross_and_static(local, params.sift)
+        kept = remove_gross_and_static(host, params.sift)  # thresholds in full-frame pixels
+        local = SiftMatches(ctx.to_crop(kept.p_t), ctx.to_crop(kept.p_t1), kept.valid)  # → crop pixels
         return sift_correspondences(local, ctx.render_t, ctx.crop_cameras, params.sift, 1.0, self.mode, ctx.mesh,
                                     ctx.model, ctx.pose_t.T_world_root, ctx.pose_t.theta)
 
