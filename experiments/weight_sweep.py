@@ -97,7 +97,10 @@ class Problem:
         self.obj_id = min(seq.model_paths)
         views = seq.views
         rig = stack_cameras([make_camera(v.K, v.width, v.height, v.T_cam_world[:3, :3], v.T_cam_world[:3, 3]) for v in views])
-        self.tracker = Tracker(load_mesh(seq.model_paths[self.obj_id]), rig, config=TrackerConfig(cues=tuple(cues)))
+        # Native-resolution crops (working_shape None): the batched step below places integer crops of one size
+        # class for every setting (`Tracker.crop`), which a resampled working resolution's scales would not follow.
+        self.tracker = Tracker(load_mesh(seq.model_paths[self.obj_id]), rig,
+                               config=TrackerConfig(cues=tuple(cues), working_shape=None))
         self.T_cam0_world = np.asarray(views[0].T_cam_world, np.float64)
         self.gt = np.asarray(views[0].T_cam_obj[self.obj_id], np.float64)  # (F, 4, 4) model → camera 0
         self.T_world_gt = np.einsum("ij,fjk->fik", np.linalg.inv(self.T_cam0_world), self.gt)

@@ -280,9 +280,11 @@ def _prior_pair(text: str) -> tuple[float, ...]:
 
 
 def _working_shape(text: str):
-    """An argparse type: 'HxW' (integers ≥ 16, multiples of 4) or 'native' (None)."""
+    """An argparse type: 'HxW' (integers ≥ 16, multiples of 4), 'native' (None) or 'default' (the tracker's)."""
     if text.strip().lower() == "native":
         return None
+    if text.strip().lower() == "default":
+        return "default"
     try:
         h, w = (int(v) for v in text.lower().split("x"))
     except ValueError:
