@@ -215,8 +215,10 @@ def test_tracks_the_teabox_on_real_video(shared_data):
     """The rendered ViSP tea box (the first 16 of its 49 frames of 640x480) with the default configuration:
     correspondence lines + flow + SIFT.
 
-    Bounds from measurement on this machine (all 49 frames, `experiments/real_sequences.py`: mean 0.45° and
-    1.11 mm, every frame within 5 cm / 5°; the level set with flow and SIFT before it: mean 0.59° / 2.46 mm,
+    Bounds from measurement on this machine (all 49 frames, `experiments/real_sequences.py`: mean 0.61° and
+    1.25 mm at the default 96x128 working resolution, 0.45° / 1.13 mm with native crops
+    (experiments/results/working_resolution.md), every frame within 5 cm / 5°; the level set with flow and SIFT
+    before it: mean 0.59° / 2.46 mm,
     every frame within 0.70° / 3.36 mm; DLR M3T: 0.32° / 2.11 mm mean with ORB keypoints, 0.85° / 2.09 mm
     region only), with a margin. The whole sequence is in the README's tea-box table (`jaxtrack track`).
     """
