@@ -29,6 +29,7 @@ import jax
 import jax.numpy as jnp
 
 from ..geometry import Camera, KinematicModel
+from ..image import full_to_window, window_to_full
 from ..render import Mesh, RasterPlan, RenderOutput
 from ..solve import Correspondences
 
@@ -116,22 +117,19 @@ class StartContext(eqx.Module):
     scales: jax.Array | None = None
 
 
-def _window_terms(points, offsets, scales):
-    """(C, 1.., 2) (x0, y0) shift and (C, 1..) scale (or None) broadcast against (C, ..., 2) points."""
+def _per_camera(points, offsets, scales):
+    """(C, 1.., 2) offsets and (C, 1..) scales (ones for None) broadcast against (C, ..., 2) points."""
     C, mid = offsets.shape[0], (1,) * (points.ndim - 2)
-    shift = offsets[:, ::-1].astype(points.dtype).reshape((C,) + mid + (2,))
-    s = None if scales is None else jnp.asarray(scales, points.dtype).reshape((C,) + mid + (1,))
-    return shift, s
+    s = jnp.ones((C,), points.dtype) if scales is None else jnp.asarray(scales, points.dtype)
+    return offsets.astype(points.dtype).reshape((C,) + mid + (2,)), s.reshape((C,) + mid)
 
 
 def _to_crop(points, offsets, scales):
-    shift, s = _window_terms(points, offsets, scales)
-    return points - shift if s is None else (points + 0.5 - shift) / s - 0.5
+    return full_to_window(points, *_per_camera(points, offsets, scales))
 
 
 def _to_full(points, offsets, scales):
-    shift, s = _window_terms(points, offsets, scales)
-    return points + shift if s is None else shift + s * (points + 0.5) - 0.5
+    return window_to_full(points, *_per_camera(points, offsets, scales))
 
 
 class FusionCounts(eqx.Module):
