@@ -2,7 +2,8 @@
 
 Each triangle is tested over a fixed square pixel patch anchored at its (image-clipped) bounding box.
 Triangles are sorted into a few patch-size classes (4, 6, 8, ..., 724 px); each class has a fixed
-capacity chosen on the host (`plan_raster`). A triangle larger than the plan's largest class (one
+capacity chosen on the host (`plan_raster`); a class with more triangles than slots spills them into
+spare slots of larger classes (`_spill_slots`). A triangle larger than the plan's largest class (one
 close to the camera) goes to the tile pool instead: the image is cut into square tiles of
 `RasterPlan.tile_size` px, and each such triangle gets one pool slot per tile it overlaps (an exact
 triangle-rectangle test), from a pool of `tile_capacity` slots shared by up to `tile_faces` such
@@ -205,12 +206,9 @@ def render(
     cls = jnp.searchsorted(sizes, extent.astype(sizes.dtype), side="left")  # smallest size ≥ extent
     cls = jnp.where(on_screen, cls, len(plan.patch_sizes))  # off-screen faces: no class
     flats, depths, fids = [], [], []
-    overflow = jnp.asarray(False)
+    assigned, slot, overflow = _spill_slots(cls, plan.capacities)
     for k, (size, cap) in enumerate(zip(plan.patch_sizes, plan.capacities)):
-        member = cls == k
-        slot = jnp.cumsum(member) - 1
-        overflow = overflow | (jnp.sum(member) > cap)
-        idx = jnp.full((cap,), -1, jnp.int32).at[jnp.where(member, slot, cap)].set(
+        idx = jnp.full((cap,), -1, jnp.int32).at[jnp.where(assigned == k, slot, cap)].set(
             jnp.arange(mesh.num_faces, dtype=jnp.int32), mode="drop"
         )
         f, d, i = _rasterize_class(px_f, inv_z_f, idx, lo[jnp.maximum(idx, 0)], size, width, height)
@@ -268,6 +266,35 @@ def render(
     return RenderOutput(
         depth, face_id, p_model, part_id, vertex_visible, overflow, near_clipped.astype(jnp.int32), status
     )
+
+
+def _spill_slots(cls, capacities: tuple):
+    """Slots of the patch classes for faces of class `cls` (F,) (len(capacities): none), spilling upwards.
+
+    The faces, ordered by class from the largest down (by index within a class), fill the classes'
+    slots from the largest class down: a class with more faces than its capacity hands the rest to
+    spare slots of larger classes (a bigger patch draws the same pixels). So a plan made for bigger
+    faces still holds the same faces when they shrink (an object moving away, or smaller in the fixed
+    working resolution), and only the counts above each class matter: overflow iff, for some class
+    k, more faces are of class ≥ k than the classes ≥ k hold.
+
+    Returns:
+        (class each face is drawn in (F,) int32, len(capacities) for none; its slot (F,); overflow).
+    """
+    num = len(capacities)
+    caps = jnp.asarray(capacities, jnp.int32)
+    one_hot = (cls[:, None] == jnp.arange(num)[None, :]).astype(jnp.int32)  # (F, K)
+    counts = jnp.sum(one_hot, axis=0)
+    above = jnp.cumsum(counts[::-1])[::-1] - counts  # faces of a larger class than k
+    within = jnp.take_along_axis(jnp.cumsum(one_hot, axis=0), jnp.minimum(cls, num - 1)[:, None], axis=1)[:, 0] - 1
+    drawn = cls < num
+    rank = jnp.where(drawn, above[jnp.minimum(cls, num - 1)] + within, 0)  # place in largest-first order
+    start = jnp.cumsum(caps[::-1])[::-1] - caps  # first rank each class takes (largest class: 0)
+    target = num - jnp.sum(rank[:, None] >= start[None, :], axis=1)  # the class whose slots hold that rank
+    target = jnp.clip(target, 0, num - 1)
+    fits = drawn & (rank < jnp.sum(caps)) & (target >= cls)
+    overflow = jnp.any(drawn & ~fits)
+    return jnp.where(fits, target, num).astype(jnp.int32), (rank - start[target]).astype(jnp.int32), overflow
 
 
 def _tile_corners(width: int, height: int, tile: int) -> np.ndarray:

@@ -235,8 +235,9 @@ class TrackerParams(eqx.Module):
 
 
 class TrackerSetup(eqx.Module):
-    """What a sequence fixes: mesh, kinematic model, cameras (C stacked), appearance atlas, raster plan, and
-    each modality's prepared data (`Modality.prepare`).
+    """What a sequence fixes: mesh, kinematic model, cameras (C stacked), appearance atlas, raster plans (the
+    full frame's and, at the fixed working resolution, the crops'), and each modality's prepared data
+    (`Modality.prepare`).
 
     The plan and the config are static (a re-plan after a render overflow is one recompilation,
     decided on the host between frames).
@@ -249,6 +250,13 @@ class TrackerSetup(eqx.Module):
     plan: RasterPlan = eqx.field(static=True)
     config: TrackerConfig = eqx.field(static=True)
     prepared: tuple | None = None  # one entry per modality: what its `prepare` made (e.g. a view model)
+    crop_plan: RasterPlan | None = eqx.field(static=True, default=None)
+
+    @property
+    def window_plan(self) -> RasterPlan:
+        """The plan of renders in the crops: `crop_plan` at the fixed working resolution (face extents in
+        working pixels, a fraction of the full frame's), else `plan` (crops at the frame's own pixels)."""
+        return self.plan if self.crop_plan is None else self.crop_plan
 
     def prepared_for(self, index: int):
         return None if self.prepared is None else self.prepared[index]
@@ -352,7 +360,7 @@ def frame_context(setup: TrackerSetup, state: TrackerState, frames, offsets, cro
     ctx = FrameContext(
         mesh=setup.mesh, model=setup.model, cameras=setup.cameras, crop_cameras=cams, offsets=offsets,
         frames=frames, crops=crops, previous=previous, previous_crops=previous_crops,
-        data_weight=data_weight_crops, render_t=None, pose_t=Pose(state.T_world_root, state.theta), plan=setup.plan,
+        data_weight=data_weight_crops, render_t=None, pose_t=Pose(state.T_world_root, state.theta), plan=setup.window_plan,
         scales=scales,
     )
     if not any(m.needs_render_t for m in setup.config.modalities()):

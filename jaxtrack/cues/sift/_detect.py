@@ -48,6 +48,9 @@ class SiftConfig:
         search_px: dilation of the frame-t region that bounds the frame-(t+1) detection (largest motion).
         margin: context in pixels around the region's bounding box of the detection crop.
         roi: detect on the crop around the region (True) or on the full frame with a mask (False).
+        max_side: detect on the crop shrunk (area averaging) so its longer side is at most this many pixels
+            (0: at the frame's own resolution); keypoints are mapped back to full-frame pixels. A large
+            object then costs what a small one does (a 352 px crop: 18 ms at full size, 5 ms at 192).
         contrast_threshold, edge_threshold, sigma, n_octave_layers: OpenCV SIFT settings.
     """
 
@@ -56,6 +59,7 @@ class SiftConfig:
     search_px: int = 40
     margin: int = 16
     roi: bool = True
+    max_side: int = 192
     contrast_threshold: float = 0.04
     edge_threshold: float = 10.0
     sigma: float = 1.6
@@ -68,6 +72,8 @@ class SiftConfig:
             raise ValueError(f"SiftConfig.capacity must be ≥ 1, got {self.capacity}")
         if self.search_px < 0 or self.margin < 0:
             raise ValueError("SiftConfig.search_px and margin must be ≥ 0")
+        if self.max_side < 0 or 0 < self.max_side < 16:
+            raise ValueError(f"SiftConfig.max_side must be 0 (native) or ≥ 16 pixels, got {self.max_side}")
 
     def detector(self):
         import cv2  # lazily: `import jaxtrack` must not load OpenCV
@@ -107,34 +113,51 @@ def _gray_u8(image) -> np.ndarray:
 
     img = np.asarray(image)
     if img.ndim == 3:
-        img = cv2.cvtColor(img.astype(np.float32), cv2.COLOR_RGB2GRAY)
+        if img.dtype != np.uint8:
+            img = img.astype(np.float32)
+        img = cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_RGB2GRAY)
     if img.ndim != 2:
         raise ValueError(f"images must be (H, W) grey or (H, W, 3) RGB per camera, got shape {np.shape(image)}")
+    if img.dtype == np.uint8:
+        return img
     return np.clip(np.round(img), 0, 255).astype(np.uint8)
 
 
 def detect_sift(image, mask, config: SiftConfig = SiftConfig(), detector=None):
-    """SIFT keypoints (n, 2) float32 and descriptors (n, 128) float32 inside `mask` of one image.
+    """SIFT keypoints (n, 2) float32 (full-frame pixels) and descriptors (n, 128) float32 inside `mask` of one image.
 
-    With `config.roi` only a crop around the mask (a `roi_crop` size class) is searched. An empty
-    mask, or a region without texture, gives n = 0 (no error).
+    With `config.roi` only a crop around the mask (a `roi_crop` size class) is searched, shrunk to
+    `config.max_side` when larger. An empty mask, or a region without texture, gives n = 0 (no error).
     """
-    gray = _gray_u8(image)
+    import cv2  # lazily: `import jaxtrack` must not load OpenCV
+
+    image = np.asarray(image)
     mask = np.asarray(mask, bool)
-    if mask.shape != gray.shape:
-        raise ValueError(f"mask must have the image's shape {gray.shape}, got {mask.shape}")
+    if image.ndim not in (2, 3):
+        raise ValueError(f"images must be (H, W) grey or (H, W, 3) RGB per camera, got shape {image.shape}")
+    if mask.shape != image.shape[:2]:
+        raise ValueError(f"mask must have the image's shape {image.shape[:2]}, got {mask.shape}")
     empty = np.zeros((0, 2), np.float32), np.zeros((0, 128), np.float32)
     if not mask.any():
         return empty
     detector = config.detector() if detector is None else detector
-    y0, x0, h, w = roi_crop(mask, config.margin) if config.roi else (0, 0) + gray.shape
-    crop, crop_mask = gray[y0 : y0 + h, x0 : x0 + w], mask[y0 : y0 + h, x0 : x0 + w]
+    y0, x0, h, w = roi_crop(mask, config.margin) if config.roi else (0, 0) + mask.shape
+    crop = _gray_u8(image[y0 : y0 + h, x0 : x0 + w])  # grey of the crop only, not of the frame
+    crop_mask = mask[y0 : y0 + h, x0 : x0 + w].astype(np.uint8) * 255
+    shrink = max(h, w) / config.max_side if config.max_side else 1.0
     with opencv_threads(1):
-        keypoints, descriptors = detector.detectAndCompute(crop, crop_mask.astype(np.uint8) * 255)
+        if shrink > 1.0:
+            size = (max(1, round(w / shrink)), max(1, round(h / shrink)))
+            crop = cv2.resize(crop, size, interpolation=cv2.INTER_AREA)
+            crop_mask = cv2.resize(crop_mask, size, interpolation=cv2.INTER_NEAREST)
+        keypoints, descriptors = detector.detectAndCompute(crop, crop_mask)
     if descriptors is None or not keypoints:
         return empty
-    xy = np.array([kp.pt for kp in keypoints], np.float32) + np.array([x0, y0], np.float32)
-    return xy, descriptors.astype(np.float32)
+    xy = np.array([kp.pt for kp in keypoints], np.float32)
+    if shrink > 1.0:  # pixel centres: full = (small + ½)·(crop side / small side) − ½
+        sx, sy = w / crop.shape[1], h / crop.shape[0]
+        xy = (xy + 0.5) * np.array([sx, sy], np.float32) - 0.5
+    return xy + np.array([x0, y0], np.float32), descriptors.astype(np.float32)
 
 
 def match_descriptors(desc_t, desc_t1, ratio: float = 0.6):
@@ -162,13 +185,23 @@ def match_descriptors(desc_t, desc_t1, ratio: float = 0.6):
 
 
 def _dilate(mask, radius: int):
+    """`mask` grown by `radius` pixels (Euclidean), computed on the box around the mask only (a distance
+    transform there: 1 ms instead of the 13 ms of an 81 px elliptic dilation of a 640x480 frame)."""
     import cv2  # lazily: `import jaxtrack` must not load OpenCV
 
-    if radius <= 0:
+    mask = np.asarray(mask, bool)
+    if radius <= 0 or not mask.any():
         return mask
-    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+    rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+    H, W = mask.shape
+    y0, y1 = max(rows[0] - radius, 0), min(rows[-1] + radius + 1, H)
+    x0, x1 = max(cols[0] - radius, 0), min(cols[-1] + radius + 1, W)
+    outside = (~mask[y0:y1, x0:x1]).astype(np.uint8)
     with opencv_threads(1):
-        return cv2.dilate(mask.astype(np.uint8), kernel).astype(bool)
+        dist = cv2.distanceTransform(outside, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)  # to the nearest mask pixel
+    out = np.zeros_like(mask)
+    out[y0:y1, x0:x1] = dist <= radius
+    return out
 
 
 def _reuse_keypoints(cache: dict | None, c: int, image, region):
