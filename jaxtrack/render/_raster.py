@@ -208,6 +208,8 @@ def render(
     flats, depths, fids = [], [], []
     assigned, slot, overflow = _spill_slots(cls, plan.capacities)
     for k, (size, cap) in enumerate(zip(plan.patch_sizes, plan.capacities)):
+        if cap == 0:  # a class without slots (its faces spill upwards)
+            continue
         idx = jnp.full((cap,), -1, jnp.int32).at[jnp.where(assigned == k, slot, cap)].set(
             jnp.arange(mesh.num_faces, dtype=jnp.int32), mode="drop"
         )
@@ -498,6 +500,7 @@ def replan(
     attempt: int = 0,
     cull_backfaces: bool = False,
     base_margin: float = 2.0,
+    extent_scale: float = 1.0,
 ) -> RasterPlan:
     """Host helper: the raster plan for a pose in every camera of a rig, merged with `old` (never shrinks).
 
@@ -509,13 +512,15 @@ def replan(
     Args:
         old: the plan in use (None at the start); cameras: one camera or a stacked rig.
         attempt: how many plans were made before (0 for the first).
+        extent_scale: plan for faces this many times larger than they are at this pose (headroom).
     """
     rig = cameras if cameras.K.ndim == 3 else jax.tree.map(lambda a: a[None], cameras)
     extents, tiles = [], []
     for c in range(rig.K.shape[0]):
         cam = jax.tree.map(lambda a, c=c: a[c], rig)
         args = (mesh, cam, T_world_root, theta, model, cull_backfaces)
-        extents.append(np.asarray(face_extents(*args)))
+        grown = np.ceil(np.asarray(face_extents(*args)) * extent_scale)
+        extents.append(np.minimum(grown, max(cam.width, cam.height)))  # a face's box never exceeds the image
         tiles.append(tile_demand(*args))
     new = plan_raster(np.stack(extents), margin=base_margin * 1.5**attempt, cull_backfaces=cull_backfaces,
                       tiles=np.asarray([t[1] for t in tiles]))

@@ -262,17 +262,28 @@ class Tracker:
             raise ValueError(f"theta must be ({J},) finite joint angles, got shape {theta.shape}")
         return jnp.asarray(T, self.dtype), jnp.asarray(theta, self.dtype)
 
-    def _replan(self, T, theta):
+    def _replan(self, T, theta, windows=None, poses=()):
         """Raster plans for the pose (T, Θ), merged with the old ones: the full frame's and, at the fixed working
         resolution, the crops' (face extents in working pixels: a 218 px box's faces fit 45-91 px patches in a
-        96x128 crop instead of 128-256 px ones, 10.8 → 2 ms per render; faces that shrink with the object
-        spill into the larger classes, so one plan serves every distance)."""
+        96x128 crop instead of 128-256 px ones, 10.8 → 3 ms per render).
+
+        The crops' plan is made in `windows` ((offsets, shape, scales) of the step that overflowed; default:
+        the windows at (T, Θ)) at (T, Θ) and at each of `poses` ((T, Θ) pairs: the step's other renders),
+        and merged with the plan of those extents grown by √2 (one patch class of headroom for faces that
+        turn toward the camera; faces that shrink spill into the larger classes), so one plan serves every
+        distance and the step compiles once.
+        """
         self.plan = replan(self.plan, self.mesh, self.cameras, T, theta, self.model, self.replans)
         if self.config.working_shape is not None and self.config.uses_crop():
-            offsets, shape, scales = self.windows(T, theta)
+            offsets, shape, scales = self.windows(T, theta) if windows is None else windows
             if offsets is not None:
                 cams = crop_camera(self.cameras, jnp.asarray(offsets), shape, jnp.asarray(scales))
-                self.crop_plan = replan(self.crop_plan, self.mesh, cams, T, theta, self.model, self.replans)
+                plan = self.crop_plan
+                for T_k, theta_k in ((T, theta),) + tuple(poses):
+                    plan = replan(plan, self.mesh, cams, T_k, theta_k, self.model, self.replans)
+                    plan = replan(plan, self.mesh, cams, T_k, theta_k, self.model, 0, extent_scale=np.sqrt(2.0),
+                                  base_margin=1.0)
+                self.crop_plan = plan
         self.replans += 1
 
     def crop(self, T, theta, boxes: np.ndarray | None = None) -> tuple[np.ndarray, tuple[int, int]]:
@@ -436,7 +447,9 @@ class Tracker:
                                                 _as_array(scales))
             if int(result.status) != Status.RENDER_OVERFLOW:
                 break
-            self._replan(result.T_world_root, result.theta)
+            # The crops' plan in this step's own windows, at the poses it rendered (χ_t and the result).
+            self._replan(result.T_world_root, result.theta, (offsets, crop_shape, scales),
+                         poses=((state.T_world_root, state.theta),))
         jax.block_until_ready(result)
         timings["step_s"] = time.perf_counter() - step_start
         timings["total_s"] = time.perf_counter() - start
