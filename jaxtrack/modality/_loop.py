@@ -226,13 +226,15 @@ def refine_rounds(
     zero_i, ok = jnp.zeros((), jnp.int32), jnp.asarray(Status.OK, jnp.int32)
     renders_ = any(m.needs_render for m in modalities)
 
-    def probe():
-        return body(RoundState(start, carries0, zero_i, jnp.zeros((), bool), ok, None,
-                               render_crops(ctx, start) if renders_ else None, start, zero_i))
+    def probe():  # one round's render and fused rows, without its solve (tracing a solve costs seconds)
+        ren = render_crops(ctx, start) if renders_ else None
+        sets = [m.rows(mc, s, f, c, start, ren, zero_i, params)[0]
+                for m, mc, s, f, c in zip(modalities, contexts, states, frames, carries0)]
+        return fuse_rows(modalities, sets, params), ren
 
     # The carry's rows and render have the structure of one round's: zeros of that shape (traced, not run).
     shapes = jax.eval_shape(probe)
-    zeros = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), (shapes.rows, shapes.render))
+    zeros = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
     first = RoundState(start, carries0, zero_i, jnp.zeros((), bool), ok, zeros[0], zeros[1], start, zero_i)
     out = jax.lax.while_loop(cond, body, first)
     status = first_failure(out.status, status_where(out.settled, Status.OK, Status.MAX_STEPS))

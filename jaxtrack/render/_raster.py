@@ -364,8 +364,15 @@ def _front_facing(px_f):
 def _screen_faces(mesh, camera, T_world_root, theta, model, cull_backfaces):
     """Host planning: projected faces (F, 3, 2), clipped box sides (F, 2) and the on-screen mask."""
     model = rigid_model(mesh.vertices.dtype) if model is None else model
-    theta = jnp.zeros((model.num_joints,), mesh.vertices.dtype) if theta is None else theta
-    p_cam, px, _ = _project_vertices(mesh, camera, model, jnp.asarray(T_world_root, mesh.vertices.dtype), theta)
+    theta = jnp.zeros((model.num_joints,), mesh.vertices.dtype) if theta is None else jnp.asarray(theta, mesh.vertices.dtype)
+    return _screen_faces_jit(mesh, camera, jnp.asarray(T_world_root, mesh.vertices.dtype), theta, model, bool(cull_backfaces))
+
+
+@eqx.filter_jit
+def _screen_faces_jit(mesh, camera, T_world_root, theta, model, cull_backfaces: bool):
+    """`_screen_faces` as one compiled program (op by op it dispatched ~70 primitives, each compiled in every
+    fresh process: 3 s of a tracker's start)."""
+    p_cam, px, _ = _project_vertices(mesh, camera, model, T_world_root, theta)
     valid = jnp.all(p_cam[mesh.faces, 2] > 0, axis=1)
     if cull_backfaces:
         valid = valid & _front_facing(px[mesh.faces])

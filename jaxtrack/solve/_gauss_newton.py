@@ -146,22 +146,25 @@ def damped_gauss_newton(
 
 
 def solve_implicit(residual_fn: Callable, iterate: Callable, y0: jax.Array, args: Any):
-    """Run `iterate(y0) -> (y*, aux)` and differentiate y* implicitly w.r.t. `args` (not y0).
+    """Run `iterate(y0, args) -> (y*, aux)` and differentiate y* implicitly w.r.t. `args` (not y0).
+
+    A `jax.custom_jvp`: the tangent dy = −(∂g/∂y)⁻¹ (∂g/∂args)·dargs of the optimality condition
+    g(y, args) = ∇_y ½|f(y, args)|² = 0 is traced only when a derivative is asked for (forward or reverse
+    mode; `lax.custom_root` traced the Hessian of the residual with every solve, 3 s per solve in the
+    tracker's step, whether differentiated or not).
 
     Args:
         residual_fn: (y, args) -> residual array f whose |f|² `iterate` minimises in the chart y.
-        iterate: the solver; its own iterations are never differentiated.
+        iterate: the solver, (guess, args) -> (y, aux); its own iterations are never differentiated.
 
     Returns:
-        (y*, aux) with aux's leaves as floats of y's dtype; only y* carries derivatives (through
-        ∇_y ½|f|² = 0).
+        (y*, aux) with aux's leaves as floats of y's dtype; only y* carries derivatives.
     """
 
-    def optimality(y):
-        return jax.grad(lambda yy: 0.5 * jnp.sum(residual_fn(yy, args) ** 2))(y)
+    def optimality(y, a):
+        return jax.grad(lambda yy: 0.5 * jnp.sum(residual_fn(yy, a) ** 2))(y)
 
-    def tangent_solve(linear_fn, rhs):
-        A = jax.jacfwd(linear_fn)(rhs)
+    def scaled_solve(A, rhs):
         # Jacobi scaling first (translations in mm and rotations in rad differ by ~1e6 in H), then a
         # tiny Tikhonov term so a rank-deficient optimum (unobserved joint) gets a finite derivative.
         diag = jnp.abs(jnp.diagonal(A))
@@ -172,11 +175,21 @@ def solve_implicit(residual_fn: Callable, iterate: Callable, y0: jax.Array, args
         ridge = jnp.finfo(A.dtype).eps ** 0.75
         return jnp.linalg.solve(A_scaled + ridge * eye, rhs / scale) / scale
 
-    def solve(_, guess):
-        y, aux = iterate(guess)
-        # custom_root differentiates its aux outputs too; integer/bool leaves travel as floats.
-        return y, jax.tree_util.tree_map(lambda a: jnp.asarray(a, y.dtype), aux)
+    @jax.custom_jvp
+    def run(guess, a):
+        y, aux = iterate(guess, a)
+        # integer/bool aux leaves travel as floats (zero tangents)
+        return y, jax.tree_util.tree_map(lambda v: jnp.asarray(v, y.dtype), aux)
 
-    y, aux_float = jax.lax.custom_root(optimality, jax.lax.stop_gradient(y0), solve, tangent_solve, has_aux=True)
-    aux_float = jax.lax.stop_gradient(aux_float)
-    return y, aux_float
+    @run.defjvp
+    def run_jvp(primals, tangents):
+        guess, a = primals
+        _, a_dot = tangents
+        y, aux = run(guess, a)
+        _, g_dot = jax.jvp(lambda aa: optimality(y, aa), (a,), (a_dot,))
+        A = jax.jacfwd(lambda yy: optimality(yy, a))(y)
+        y_dot = -scaled_solve(jax.lax.stop_gradient(A), g_dot)
+        return (y, aux), (y_dot, jax.tree_util.tree_map(jnp.zeros_like, aux))
+
+    y, aux_float = run(jax.lax.stop_gradient(y0), args)
+    return y, jax.lax.stop_gradient(aux_float)

@@ -45,7 +45,7 @@ class SolverConfig(eqx.Module):
         max_steps: iteration budget.
         rtol, atol: stop when the step or the relative cost decrease is this small.
         backend: "gauss-newton" (default): Marquardt-damped Gauss-Newton on the (6+J)² normal
-            equations (eq. 5), implicit derivatives through `lax.custom_root`; "optimistix":
+            equations (eq. 5), implicit derivatives through a `jax.custom_jvp` (`solve_implicit`); "optimistix":
             `optimistix.LevenbergMarquardt` (QR on the full Jacobian, optimistix's implicit adjoint),
             the reference implementation, ~30x slower under vmap on CPU.
     """
@@ -494,7 +494,7 @@ def solve_pose(
         finite = jnp.all(jnp.isfinite(y))
     else:
         y, (converged, num_steps, nonfinite, conditioning) = solve_implicit(
-            _weighted_residual, lambda guess: _gauss_newton_iterate(guess, problem, config), y0, problem
+            _weighted_residual, lambda guess, args: _gauss_newton_iterate(guess, args, config), y0, problem
         )
         finite = jnp.all(jnp.isfinite(y)) & ~(nonfinite > 0)
         solver_status = status_where(converged > 0, Status.OK, Status.MAX_STEPS)
