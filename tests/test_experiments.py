@@ -78,7 +78,7 @@ def test_bench_track_quick(track_smoke):
     row = _markdown_rows(text, "region")[0]
     assert len(row) == 13 and row[1] == "1" and float(row[3]) > 0
     assert "| sum of the stages |" in text and "| whole step (`Tracker.step`, same inputs) |" in text
-    assert "region only:" in text and "frames/s (goal ≥ 30)" in text
+    assert "region only, 1 camera:" in text and "ms per frame (goal ≤ 10)" in text
 
 
 @pytest.mark.xdist_group("tracker_quick")

@@ -281,10 +281,27 @@ class Tracker:
                 plan = self.crop_plan
                 for T_k, theta_k in ((T, theta),) + tuple(poses):
                     plan = replan(plan, self.mesh, cams, T_k, theta_k, self.model, self.replans)
-                    plan = replan(plan, self.mesh, cams, T_k, theta_k, self.model, 0, extent_scale=np.sqrt(2.0),
-                                  base_margin=1.0)
+                    plan = replan(plan, self.mesh, cams, T_k, theta_k, self.model, 0,
+                                  extent_scale=np.sqrt(2.0) * self._window_growth(T_k, theta_k), base_margin=1.0)
                 self.crop_plan = plan
         self.replans += 1
+
+    def _window_growth(self, T, theta) -> float:
+        """How much larger the object may get in working pixels before the crops' plan is made again: while it
+        is smaller than the working window (scale clamped at 1) it grows at the window's own scale until it
+        fills it; and once the window would need more than the frame (scale clamped at the largest that fits)
+        it grows in the window again: within 2x of that clamp, plan for 2x."""
+        boxes = projected_boxes(self.mesh, self.cameras, T, theta, self.model)
+        if not np.all(np.isfinite(boxes)):
+            return 1.0
+        H, W = self.cameras.height, self.cameras.width
+        h, w = self.config.working_shape
+        margin = self.margin + int(np.ceil(1.5 * self.last_motion_px))
+        need = np.maximum((boxes[:, 3] - boxes[:, 1] + 1 + 2 * margin) / h, (boxes[:, 2] - boxes[:, 0] + 1 + 2 * margin) / w)
+        fit = min(H / h, W / w)
+        below = np.maximum(1.0 / need, 1.0)  # scale 1: room left in the window
+        above = np.where(2.0 * np.maximum(need, 1.0) > fit, 2.0, 1.0)  # near the largest scale
+        return float(np.max(below * above))
 
     def crop(self, T, theta, boxes: np.ndarray | None = None) -> tuple[np.ndarray, tuple[int, int]]:
         """Crop offsets (C, 2) and the shared static crop size around the object at (T, Θ)
@@ -332,6 +349,9 @@ class Tracker:
         cy, cx = (boxes[:, 1] + boxes[:, 3]) / 2, (boxes[:, 0] + boxes[:, 2]) / 2
         y0 = np.clip(cy + 0.5 - scales * h / 2, 0.0, np.maximum(H - scales * h, 0.0))
         x0 = np.clip(cx + 0.5 - scales * w / 2, 0.0, np.maximum(W - scales * w, 0.0))
+        # At scale 1 a whole-pixel offset reads the frame's own pixels (no bilinear blur between two).
+        native = scales <= 1.0
+        y0, x0 = np.where(native, np.floor(y0 + 0.5), y0), np.where(native, np.floor(x0 + 0.5), x0)
         self.crop_shape = (h, w)
         return (np.stack([y0, x0], -1).astype(np.float32), (h, w), scales.astype(np.float32))
 
