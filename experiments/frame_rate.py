@@ -162,11 +162,16 @@ def main(argv=None):
     ap.add_argument("--step-deg", type=float, default=3.0, help="rotation per frame at S = 1 (°)")
     ap.add_argument("--sigma", type=float, default=40.0, help="Gaussian noise of the noisy variant")
     ap.add_argument("--no-m3t", action="store_true")
+    ap.add_argument("--working-shape", default=None, help="HxW crop working resolution, or native (default: the tracker's)")
     ap.add_argument("--budget-min", type=float, default=None, help="start no new jaxtrack run after this many minutes")
     ap.add_argument("--seq-dir", default=None)
     ap.add_argument("--out", default=None, help="markdown output (default experiments/results/frame_rate.md; --quick: none)")
     ap.add_argument("--plot", default=None, help="plot (default experiments/results/frame_rate.png; --quick: none)")
     args = ap.parse_args(argv)
+    if args.working_shape:  # track_presets runs the tracker: its module setting
+        from jaxtrack.cli import _working_shape
+
+        tp.WORKING_SHAPE = _working_shape(args.working_shape)
     if args.quick:
         args.cues, args.frames, args.scale, args.steps, args.variants = "region", 4, 0.15, "1,2", "regular,occluded"
     subsets = tp.parse_subsets(args.cues)
