@@ -83,26 +83,26 @@ def main(argv=None):
         if k % 100 == 0:
             print(f"[memory_flat] frame {k}: peak {marks.get(k, _rss_mib())[0]:.0f} MiB, rot {rot[-1]:.2f}°", file=sys.stderr,
                   flush=True)
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], check=False, capture_output=True, text=True,
                             cwd=pathlib.Path(__file__).resolve().parent).stdout.strip() or "unknown"
     growth = marks[args.frames][0] - marks[100][0]
     lines = [
         "# Memory over a long sequence",
         "",
         f"Command: `python experiments/memory_flat.py {' '.join(sys.argv[1:] if argv is None else argv)}`  ",
-        f"Machine: {platform.machine()}, {os.cpu_count()} cores; source: {commit}; load average at the start "
-        f"{tuple(round(x, 2) for x in load_start)}; run took {(time.perf_counter() - started) / 60:.1f} min.",
+        (f"Machine: {platform.machine()}, {os.cpu_count()} cores; source: {commit}; load average at the start "
+         f"{tuple(round(x, 2) for x in load_start)}; run took {(time.perf_counter() - started) / 60:.1f} min."),
         "",
-        f"Sequence: bench_track's textured box (640x480), {args.clip} rendered frames played back and forth for "
-        f"{args.frames} tracked frames; all cues, one camera, the default configuration (96x128 working resolution).",
+        (f"Sequence: bench_track's textured box (640x480), {args.clip} rendered frames played back and forth for "
+         f"{args.frames} tracked frames; all cues, one camera, the default configuration (96x128 working resolution)."),
         "",
         "| after frame | peak RSS MiB | current RSS MiB |",
         "|---:|---:|---:|",
         *(f"| {k} | {marks[k][0]:.0f} | {marks[k][1]:.0f} |" for k in sorted(marks)),
         "",
-        f"Peak RSS growth from frame 100 to frame {args.frames}: {growth:+.0f} MiB "
-        f"({100 * growth / marks[100][0]:+.1f} %). Median {np.median(ms):.0f} ms per frame; rotation error mean "
-        f"{np.mean(rot):.2f}°, max {np.max(rot):.2f}° (the box's known poses).",
+        (f"Peak RSS growth from frame 100 to frame {args.frames}: {growth:+.0f} MiB "
+         f"({100 * growth / marks[100][0]:+.1f} %). Median {np.median(ms):.0f} ms per frame; rotation error mean "
+         f"{np.mean(rot):.2f}°, max {np.max(rot):.2f}° (the box's known poses)."),
     ]
     text = "\n".join(lines) + "\n"
     print(text)
