@@ -270,8 +270,8 @@ class Tracker:
         The crops' plan is made in `windows` ((offsets, shape, scales) of the step that overflowed; default:
         the windows at (T, Θ)) at (T, Θ) and at each of `poses` ((T, Θ) pairs: the step's other renders),
         and merged with the plan of those extents grown by √2 (one patch class of headroom for faces that
-        turn toward the camera; faces that shrink spill into the larger classes), so one plan serves every
-        distance and the step compiles once.
+        turn toward the camera) times `_window_growth` (the object growing inside the window); faces that
+        shrink spill into the larger classes, so one plan serves every distance and the step compiles once.
         """
         self.plan = replan(self.plan, self.mesh, self.cameras, T, theta, self.model, self.replans)
         if self.config.working_shape is not None and self.config.uses_crop():
@@ -286,6 +286,17 @@ class Tracker:
                 self.crop_plan = plan
         self.replans += 1
 
+    def _crop_margin(self) -> int:
+        """Pixels of context around the object's box: the fixed margin plus 1.5x the last frame's motion."""
+        return self.margin + int(np.ceil(1.5 * self.last_motion_px))
+
+    def _needed_scales(self, boxes: np.ndarray, margin: int) -> np.ndarray:
+        """(C,) full-frame pixels per working pixel that fit each box plus `margin` in the working shape (unclamped)."""
+        h, w = self.config.working_shape
+        need_w = boxes[:, 2] - boxes[:, 0] + 1 + 2 * margin
+        need_h = boxes[:, 3] - boxes[:, 1] + 1 + 2 * margin
+        return np.maximum(need_h / h, need_w / w)
+
     def _window_growth(self, T, theta) -> float:
         """How much larger the object may get in working pixels before the crops' plan is made again: while it
         is smaller than the working window (scale clamped at 1) it grows at the window's own scale until it
@@ -296,8 +307,7 @@ class Tracker:
             return 1.0
         H, W = self.cameras.height, self.cameras.width
         h, w = self.config.working_shape
-        margin = self.margin + int(np.ceil(1.5 * self.last_motion_px))
-        need = np.maximum((boxes[:, 3] - boxes[:, 1] + 1 + 2 * margin) / h, (boxes[:, 2] - boxes[:, 0] + 1 + 2 * margin) / w)
+        need = self._needed_scales(boxes, self._crop_margin())
         fit = min(H / h, W / w)
         below = np.maximum(1.0 / need, 1.0)  # scale 1: room left in the window
         above = np.where(2.0 * np.maximum(need, 1.0) > fit, 2.0, 1.0)  # near the largest scale
@@ -328,7 +338,7 @@ class Tracker:
         # Keep what is on screen; a box entirely off screen still gets a crop at the border.
         boxes[:, [0, 2]] = np.clip(boxes[:, [0, 2]], 0, W - 1)
         boxes[:, [1, 3]] = np.clip(boxes[:, [1, 3]], 0, H - 1)
-        margin = self.margin + int(np.ceil(1.5 * self.last_motion_px))
+        margin = self._crop_margin()
         if self.config.working_shape is not None:
             return self._scaled_windows(boxes, margin)
         # A new size class has 25% headroom and is kept while the object fits: each class is one
@@ -342,10 +352,8 @@ class Tracker:
         """Windows of the fixed working shape: one scale per camera (see `windows`)."""
         H, W = self.cameras.height, self.cameras.width
         h, w = self.config.working_shape
-        need_w = boxes[:, 2] - boxes[:, 0] + 1 + 2 * margin
-        need_h = boxes[:, 3] - boxes[:, 1] + 1 + 2 * margin
         fit = min(H / h, W / w)  # the largest scale whose window lies inside the frame
-        scales = np.minimum(np.maximum(np.maximum(need_h / h, need_w / w), 1.0), fit)
+        scales = np.minimum(np.maximum(self._needed_scales(boxes, margin), 1.0), fit)
         cy, cx = (boxes[:, 1] + boxes[:, 3]) / 2, (boxes[:, 0] + boxes[:, 2]) / 2
         y0 = np.clip(cy + 0.5 - scales * h / 2, 0.0, np.maximum(H - scales * h, 0.0))
         x0 = np.clip(cx + 0.5 - scales * w / 2, 0.0, np.maximum(W - scales * w, 0.0))
