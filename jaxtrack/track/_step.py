@@ -64,6 +64,10 @@ CUES = ("region", "flow", "sift")
 # working-resolution table against native crops (experiments/results/working_resolution.md).
 RIGID_WORKING_SHAPE = (96, 128)
 REGION_MODALITIES = ("levelset", "lines")
+# The flow pyramid's coarsest level at the working resolution (px, short side). With the default 16 a 96 px crop
+# had 3 levels, one fewer than the native crops it replaced, and the prediction did not reach a 20 px / 12° frame
+# step (frame_rate S = 4: 38 % success, 100 % with 8; tests/test_tracker.py shows the cut-off reach).
+WORKING_FLOW_MIN_SIZE = 8
 
 
 class TrackerConfig(eqx.Module):
@@ -143,13 +147,16 @@ class TrackerConfig(eqx.Module):
 
     def resolved(self, articulated: bool) -> TrackerConfig:
         """This configuration with "auto" resolved for a rigid object (lines; crops at `RIGID_WORKING_SHAPE` unless
-        the level set is configured) or a chain (the level set; native-resolution crops)."""
+        the level set is configured) or a chain (the level set; native-resolution crops). With a working shape the
+        flow pyramid runs down to `WORKING_FLOW_MIN_SIZE` (the crop is small: it needs its levels to reach the motion)."""
         out = self
         if self.region_modality == "auto":
             out = dataclasses.replace(out, region_modality="levelset" if articulated else "lines")
         if isinstance(self.working_shape, str):  # "auto": not with the level set (measured at native crops only)
             dense = any(m.name == "levelset" for m in out.modalities())
             out = dataclasses.replace(out, working_shape=None if articulated or dense else RIGID_WORKING_SHAPE)
+        if out.working_shape is not None and out.flow.min_size > WORKING_FLOW_MIN_SIZE:
+            out = dataclasses.replace(out, flow=dataclasses.replace(out.flow, min_size=WORKING_FLOW_MIN_SIZE))
         return out
 
     def modalities(self) -> tuple[Modality, ...]:
@@ -300,6 +307,9 @@ class FrameResult(eqx.Module):
         part_support: (P,) per part, the fraction of its unoccluded model silhouette (all cameras) that the
             segmentation covers; −1 where the part is not seen or no modality segments. A limb whose
             support falls below `lost_iou` has lost its silhouette.
+        appearance_distance: (C,) mean histogram distance d (eq. 9) between the appearance model and the image
+            over the object pixels whose texel is known, at the final pose (0: the surface looks as learnt; a
+            wrong pose reads the wrong texture); −1 where the occlusion detection did not run or nothing is known.
     """
 
     T_world_root: jax.Array
@@ -315,6 +325,7 @@ class FrameResult(eqx.Module):
     iterations: jax.Array
     region_phi: jax.Array
     part_support: jax.Array
+    appearance_distance: jax.Array
 
 
 def _counts(corr: Correspondences, num_cameras: int, cue) -> jax.Array:
@@ -500,6 +511,7 @@ def track_step(
         seen = evidence.get("seen", jnp.ones((num_cams,), bool))
         part_support = -jnp.ones((model.num_parts,), dtype)
         occluded_fraction = jnp.zeros((num_cams,), dtype)
+        appearance_distance = -jnp.ones((num_cams,), dtype)
     else:
         sil_t1 = ren_t1.face_id >= 0 if ren_t1 is not None else jnp.zeros((num_cams,) + tuple(crop_shape), bool)
         if occlusion:
@@ -508,9 +520,14 @@ def track_step(
             occ = detect_occlusion(setup.atlas, state.appearance, obs, ren_t1, params.occlusion, config.occlusion_config)
             appearance = update_appearance(state.appearance, obs, occ.occluded, params.occlusion, hold_new=occ.near_occlusion)
             occluded = occ.occluded
+            known = occ.known
+            n_known = jnp.sum(known, axis=(1, 2))
+            appearance_distance = jnp.where(n_known > 0, jnp.sum(jnp.where(known, occ.distance, 0.0), axis=(1, 2))
+                                            / jnp.maximum(n_known, 1), -1.0).astype(dtype)
         else:
             appearance = state.appearance
             occluded = jnp.zeros_like(sil_t1)
+            appearance_distance = -jnp.ones((num_cams,), dtype)
         if occlusion or motion_idx:
             data_weight = paste_frames(jnp.ones((num_cams,) + full, dtype), jnp.where(occluded, 0.0, 1.0).astype(dtype),
                                        offsets, scales)
@@ -574,5 +591,6 @@ def track_step(
         confidence=confidence, iou=iou, counts=counts, motion_inliers=inliers,
         occluded_fraction=occluded_fraction,
         iterations=jnp.asarray(iterations, jnp.int32), region_phi=phi, part_support=part_support.astype(dtype),
+        appearance_distance=appearance_distance,
     )
     return new_state, result
