@@ -99,7 +99,7 @@ def track_run(seq, subset: str, *, max_deg: float, max_mm: float, stop_after: in
 
     try:
         track_sequence(seq, cues=tuple(subset.split("+")), reset_on_failure=reset, max_frames=max_frames,
-                       progress=False, on_frame=on_frame)
+                       progress=False, on_frame=on_frame, working_shape=tp.WORKING_SHAPE)  # --working-shape of the caller
         stopped = False
     except _Stop:
         stopped = True

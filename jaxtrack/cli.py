@@ -506,7 +506,7 @@ def _fmt(v: float, digits: int) -> str:
 
 def _print_evaluation(ev, per_frame: bool = True) -> None:
     """Markdown tables: per frame, then means / medians / maxima, rates and the status quality."""
-    from jaxtrack.track import precision_recall
+    from jaxtrack.track import failure_episodes, precision_recall
 
     tenth = 0.1 * ev.diameter_mm
     if per_frame:
@@ -548,8 +548,15 @@ def _print_evaluation(ev, per_frame: bool = True) -> None:
     for name, pred in (("lost", lost), ("lost or uncertain", flagged)):
         p, r = precision_recall(pred, failed)
         print(f"| {name} | {int(pred.sum())} | {_fmt(p, 3)} | {_fmt(r, 3)} |")
+    episodes = failure_episodes(failed)
+    if episodes:
+        back = [n for n, recovered in episodes if recovered]
+        print(f"\nfailures: {len(episodes)} run(s) of frames beyond 5 cm / 5°; back within it after "
+              + (f"{_fmt(float(np.median(back)), 1)} frames (median), {max(back)} at most" if back else "-")
+              + f"; {sum(not r for _, r in episodes)} never back")
     if ev.reset is not None and ev.reset.any():
         print(f"\nresets (RBOT protocol): {int(ev.reset.sum())}")
+
 
 
 def _cmd_eval(args) -> int:

@@ -93,3 +93,16 @@ def test_success_and_status_quality():
     assert np.isnan(p) and np.isnan(r)
     with pytest.raises(ValueError, match="T_est"):
         pose_errors(np.eye(4), np.eye(4)[None])
+
+
+def test_failure_episodes_count_frames_until_back():
+    from jaxtrack.track import failure_episodes
+
+    assert failure_episodes([0, 1, 1, 0, 0, 1, 0, 1, 1, 1]) == [(2, True), (1, True), (3, False)]
+    assert failure_episodes([0, 0]) == [] and failure_episodes([]) == []
+    rng = np.random.default_rng(0)
+    for _ in range(20):  # every failed frame is in exactly one run; only the last run can be unfinished
+        failed = rng.random(30) < 0.4
+        runs = failure_episodes(failed)
+        assert sum(n for n, _ in runs) == failed.sum()
+        assert all(back for _, back in runs[:-1]) and (not runs or runs[-1][1] == (not failed[-1]))

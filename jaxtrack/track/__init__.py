@@ -4,6 +4,7 @@ from ..solve import CueWeights as CueWeights  # fusion acts on correspondence se
 from ..solve import fuse_cue_weights as fuse_cue_weights
 from ._evaluate import add_error as add_error
 from ._evaluate import adds_error as adds_error
+from ._evaluate import failure_episodes as failure_episodes
 from ._evaluate import model_diameter as model_diameter
 from ._evaluate import pose_errors as pose_errors
 from ._evaluate import precision_recall as precision_recall

@@ -85,3 +85,18 @@ def precision_recall(predicted, actual) -> tuple[float, float]:
     precision = tp / predicted.sum() if predicted.any() else float("nan")
     recall = tp / actual.sum() if actual.any() else float("nan")
     return float(precision), float(recall)
+
+
+def failure_episodes(failed) -> list[tuple[int, bool]]:
+    """Runs of consecutive failed frames: (length = frames until the tracker is back within the bound, whether it
+    came back before the sequence ended), in order; `failed` (F,) bool per frame."""
+    out, run = [], 0
+    for f in np.asarray(failed, bool):
+        if f:
+            run += 1
+        elif run:
+            out.append((run, True))
+            run = 0
+    if run:
+        out.append((run, False))
+    return out

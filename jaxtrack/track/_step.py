@@ -42,7 +42,7 @@ from ..cues.occlusion import (
     update_appearance,
 )
 from ..cues.sift import SiftParams, reprojection_errors
-from ..geometry import Camera, KinematicModel, crop_camera
+from ..geometry import Camera, KinematicModel, crop_camera, rotation_error_deg
 from ..image import crop_window, paste_window, paste_window_scaled, sample_window
 from ..modality import (
     FrameContext,
@@ -64,6 +64,12 @@ CUES = ("region", "flow", "sift")
 # working-resolution table against native crops (experiments/results/working_resolution.md).
 RIGID_WORKING_SHAPE = (96, 128)
 REGION_MODALITIES = ("levelset", "lines")
+# The evidence of a lost frame (`FrameResult.loss_evidence`, in this order) and the logistic weights that turn it
+# into p(frame beyond 5 cm / 5°): [intercept, one per feature], fitted by experiments/loss_detection.py on its
+# calibration sequences (other seeds, objects and motions than the sequences it is evaluated on).
+LOSS_EVIDENCE = ("contour", "motion", "occluded", "appearance", "jump_pred")
+LOSS_WEIGHTS = (-2.995, 2.561, 3.858, 22.900, 11.744, 2.026)
+
 # The flow pyramid's coarsest level at the working resolution (px, short side). With the default 16 a 96 px crop
 # had 3 levels, one fewer than the native crops it replaced, and the prediction did not reach a 20 px / 12° frame
 # step (frame_rate S = 4: 38 % success, 100 % with 8; tests/test_tracker.py shows the cut-off reach).
@@ -186,6 +192,16 @@ class TrackerConfig(eqx.Module):
         """The occlusion detection runs when asked for and some modality reads its r(x) or mask."""
         return self.occlusion and any(m.uses_occlusion for m in self.modalities())
 
+    def calibrated_confidence(self) -> bool:
+        """Whether the frame's confidence is the calibrated p(frame right) of `LOSS_EVIDENCE`: with a contour
+        modality that reports its own agreement (the lines) and the occlusion detection (its appearance
+        evidence), the configuration the weights were fitted on. Else the silhouette agreement (level set) or
+        the modality's own confidence, as before."""
+        if not self.runs_occlusion():
+            return False
+        contour = [m for m in self.modalities() if m.contour]
+        return bool(contour) and not any(m.needs_render for m in contour)
+
     def has(self, cue: str) -> bool:
         """Whether a cue is configured ("region" matches any contour modality)."""
         if cue == "region":
@@ -218,6 +234,10 @@ class TrackerParams(eqx.Module):
             toward the prediction for the whole frame.
         lines: the correspondence-line modality's parameters (`jaxtrack.cues.lines.LineParams`, M3T's defaults).
         line_learning_rate: rate of its colour-histogram update per frame (M3T: 0.2).
+        loss_weights: (1 + len(LOSS_EVIDENCE),) logistic weights of the calibrated confidence (`LOSS_WEIGHTS`):
+            confidence = 1 − σ(w₀ + w · evidence) where it applies (`TrackerConfig.calibrated_confidence`).
+        uncertain_confidence, lost_confidence: a calibrated confidence below these is UNCERTAIN / LOST (0.5: the
+            frame is more likely beyond 5 cm / 5° than not).
     """
 
     weights: CueWeights
@@ -239,6 +259,9 @@ class TrackerParams(eqx.Module):
     prior_follows_round: jax.Array = eqx.field(default_factory=lambda: jnp.zeros(()))
     lines: LineParams = eqx.field(default_factory=line_params)
     line_learning_rate: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(0.2))
+    loss_weights: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(LOSS_WEIGHTS))
+    uncertain_confidence: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(0.5))
+    lost_confidence: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(0.25))
 
 
 class TrackerSetup(eqx.Module):
@@ -310,6 +333,10 @@ class FrameResult(eqx.Module):
         appearance_distance: (C,) mean histogram distance d (eq. 9) between the appearance model and the image
             over the object pixels whose texel is known, at the final pose (0: the surface looks as learnt; a
             wrong pose reads the wrong texture); −1 where the occlusion detection did not run or nothing is known.
+        loss_evidence: (len(LOSS_EVIDENCE),) what the calibrated confidence reads: 1 − the contour modality's
+            agreement, 1 − motion_inliers (0 without motion rows), the largest occluded fraction and appearance
+            distance over the cameras (0 when not measured), and the rotation (°/10) from the motion prediction
+            to the final pose (0 without a prediction): the refinement had to overrule the motion cues.
     """
 
     T_world_root: jax.Array
@@ -326,6 +353,7 @@ class FrameResult(eqx.Module):
     region_phi: jax.Array
     part_support: jax.Array
     appearance_distance: jax.Array
+    loss_evidence: jax.Array
 
 
 def _counts(corr: Correspondences, num_cameras: int, cue) -> jax.Array:
@@ -454,10 +482,11 @@ def track_step(
         fused = fuse_rows(motion, [data[i] for i in motion_idx], params, prediction=True)
         pred = solve_pose(model, fused, T_t, theta_t, SolverConfig(max_steps=config.prediction_steps))
         use = is_usable(pred.status)
+        predicted = use
         T_pred = jnp.where(use, pred.T_world_root, T_t)
         theta_pred = jnp.clip(jnp.where(use, pred.theta, theta_t), params.theta_lower, params.theta_upper)
     else:
-        T_pred, theta_pred = T_t, theta_t
+        T_pred, theta_pred, predicted = T_t, theta_t, jnp.zeros((), bool)
     data = tuple(m.check_prediction(c, s, d, Pose(T_pred, theta_pred), params)
                  for m, c, s, d in zip(modalities, contexts, state.modalities, data))
 
@@ -557,17 +586,31 @@ def track_step(
     if motion_rows:
         motion = concatenate_correspondences(*motion_rows) if len(motion_rows) > 1 else motion_rows[0]
         inliers = _motion_inliers(motion, cams, model, T_new, theta_new, params.inlier_px).astype(dtype)
+        motion_disagreement = jnp.where(jnp.any(motion.weight > 0), 1.0 - inliers, 0.0)  # no rows: no evidence
     else:
         inliers = jnp.ones((), dtype)
+        motion_disagreement = jnp.zeros((), dtype)
     if has_segmentation:
-        confidence = jnp.sum(jnp.where(seen, iou, 0.0)) / jnp.maximum(jnp.sum(seen), 1)
+        agreement = jnp.sum(jnp.where(seen, iou, 0.0)) / jnp.maximum(jnp.sum(seen), 1)
     elif "confidence" in evidence:
-        confidence = jnp.asarray(evidence["confidence"], dtype)
+        agreement = jnp.asarray(evidence["confidence"], dtype)
     else:
-        confidence = inliers
-    confidence = jnp.clip(confidence, 0.0, 1.0)
-    quality = jnp.where(confidence < params.lost_iou, Status.LOST,
-                        jnp.where(confidence < params.uncertain_iou, Status.UNCERTAIN, Status.OK))
+        agreement = inliers
+    agreement = jnp.clip(agreement, 0.0, 1.0)
+    jump = jnp.where(predicted, rotation_error_deg(T_new[:3, :3], T_pred[:3, :3]) / 10.0, 0.0)  # no prediction: none
+    loss_evidence = jnp.stack([
+        1.0 - agreement, motion_disagreement, jnp.max(occluded_fraction), jnp.maximum(jnp.max(appearance_distance), 0.0),
+        jump,
+    ]).astype(dtype)
+    if config.calibrated_confidence():
+        w = params.loss_weights.astype(dtype)
+        confidence = jax.nn.sigmoid(-(w[0] + jnp.dot(w[1:], loss_evidence)))  # 1 − p(frame beyond 5 cm / 5°)
+        quality = jnp.where(confidence < params.lost_confidence, Status.LOST,
+                            jnp.where(confidence < params.uncertain_confidence, Status.UNCERTAIN, Status.OK))
+    else:
+        confidence = agreement
+        quality = jnp.where(confidence < params.lost_iou, Status.LOST,
+                            jnp.where(confidence < params.uncertain_iou, Status.UNCERTAIN, Status.OK))
     solve_ok = is_usable(solve_status)
     overflow = jnp.zeros((), bool)
     for r in (ctx.render_t, ren_t1):
@@ -591,6 +634,6 @@ def track_step(
         confidence=confidence, iou=iou, counts=counts, motion_inliers=inliers,
         occluded_fraction=occluded_fraction,
         iterations=jnp.asarray(iterations, jnp.int32), region_phi=phi, part_support=part_support.astype(dtype),
-        appearance_distance=appearance_distance,
+        appearance_distance=appearance_distance, loss_evidence=loss_evidence,
     )
     return new_state, result

@@ -42,7 +42,17 @@ from ..geometry._validate import checked_rotation
 from ..modality import Pose, StartContext
 from ..render import Mesh, RasterPlan, render, replan
 from ..solve import CueWeights
-from ._step import FrameResult, TrackerConfig, TrackerParams, TrackerSetup, TrackerState, crop_frames, track_step
+from ._step import (
+    LOSS_EVIDENCE,
+    LOSS_WEIGHTS,
+    FrameResult,
+    TrackerConfig,
+    TrackerParams,
+    TrackerSetup,
+    TrackerState,
+    crop_frames,
+    track_step,
+)
 
 _track_step_jit = eqx.filter_jit(track_step)
 
@@ -169,6 +179,9 @@ def default_params(
         prior_follows_round=jnp.asarray(prior[4], dtype),
         lines=line_params(dtype),
         line_learning_rate=jnp.asarray(0.2, dtype),
+        loss_weights=jnp.asarray(LOSS_WEIGHTS, dtype),
+        uncertain_confidence=jnp.asarray(0.5, dtype),
+        lost_confidence=jnp.asarray(0.25, dtype),
     )
 
 
@@ -515,4 +528,5 @@ class Tracker:
             counts=jnp.zeros((C, len(self.config.cues)), jnp.int32), motion_inliers=jnp.zeros((), dt), occluded_fraction=jnp.zeros((C,), dt),
             iterations=jnp.zeros((), jnp.int32), region_phi=-jnp.ones((C, 1, 1), dt),
             part_support=-jnp.ones((self.model.num_parts,), dt), appearance_distance=-jnp.ones((C,), dt),
+            loss_evidence=jnp.zeros((len(LOSS_EVIDENCE),), dt),
         )
