@@ -13,9 +13,10 @@ one). For frames t → t+1 of C cameras sharing one state χ = (ξ, Θ):
 4. update: every modality's state (densities), the occlusion map of frame t+1 at the final pose (the
    next step's r(x) and the SIFT mask) and the appearance model where not occluded (eq. 10).
 
-Failures are values: the frame's `Status` and a confidence from evidence the tracker has (silhouette
-agreement of segmentation and model, agreement of the motion cues with the final pose), never from
-ground truth. Every parameter is an array (`TrackerParams`), so weights and thresholds can be swept
+Failures are values: the frame's `Status` and a confidence from evidence the tracker has (contour and
+silhouette agreement, agreement of the motion cues with the final pose, the appearance model against the
+image, how far the refinement moved from the prediction; for the lines with the occlusion detection combined
+by weights calibrated on synthetic sequences, `LOSS_WEIGHTS`), never from ground truth. Every parameter is an array (`TrackerParams`), so weights and thresholds can be swept
 with vmap or differentiated without recompiling; what shapes the program (`TrackerConfig`, the raster
 plan, the crop size class) is static.
 """
@@ -319,8 +320,11 @@ class FrameResult(eqx.Module):
 
     Attributes:
         T_world_root, theta: the final pose; T_pred, theta_pred: the prediction from the motion cues.
-        status: int32 `Status`: OK, UNCERTAIN, LOST, OUT_OF_VIEW, RENDER_OVERFLOW (re-plan and redo), ...
-        confidence: [0, 1] evidence that the pose is right (silhouette agreement, else motion inliers).
+        status: int32 `Status`: OK, UNCERTAIN, LOST (from the confidence), OUT_OF_VIEW, RENDER_OVERFLOW (re-plan and
+            redo), ...
+        confidence: [0, 1] evidence that the pose is right: with `TrackerConfig.calibrated_confidence` the
+            calibrated p(frame within 5 cm / 5°) of `loss_evidence`; else the silhouette agreement of segmentation
+            and model (level set), the contour modality's own agreement, or the motion inliers.
         iou: (C,) agreement of the segmentation with the model silhouette at the final pose per camera.
         counts: (C, M) correspondences with weight per camera and configured cue (`TrackerConfig.cue_names`).
         motion_inliers: fraction of weighted motion correspondences within `inlier_px` at the final pose.
