@@ -105,9 +105,9 @@ def track(seq, inject_at: int | None = None, inject_deg: float = 0.0, seed: int 
     import equinox as eqx
     import jax.numpy as jnp
 
-    from jaxtrack.geometry import make_camera, rotation_error_deg, se3_exp, stack_cameras
+    from jaxtrack.geometry import make_camera, rotation_error_deg, so3_exp, stack_cameras
     from jaxtrack.io import load_mesh
-    from jaxtrack.track import Tracker
+    from jaxtrack.track import Tracker, success_mask
 
     view = seq.views[0]
     rig = stack_cameras([make_camera(view.K, view.width, view.height, view.T_cam_world[:3, :3], view.T_cam_world[:3, 3])])
@@ -120,11 +120,9 @@ def track(seq, inject_at: int | None = None, inject_deg: float = 0.0, seed: int 
     for k in range(1, seq.num_frames):
         if inject_at is not None and k == inject_at:
             axis = rng.normal(size=3)
-            xi = np.concatenate([np.zeros(3), axis / np.linalg.norm(axis) * np.radians(inject_deg)])
             T = np.asarray(state.T_world_root, np.float64)
-            R = np.asarray(se3_exp(jnp.asarray(xi)))[:3, :3]
-            T_new = T.copy()
-            T_new[:3, :3] = T[:3, :3] @ R  # turned about the object's own centre
+            T_new = T.copy()  # turned about the object's own centre
+            T_new[:3, :3] = T[:3, :3] @ np.asarray(so3_exp(jnp.asarray(axis / np.linalg.norm(axis) * np.radians(inject_deg))))
             state = eqx.tree_at(lambda s: s.T_world_root, state, jnp.asarray(T_new, tracker.dtype))
         state, r, _ = tracker.step(state, view.read_frame(k)[None])
         T = np.asarray(r.T_world_root, np.float64)
@@ -132,7 +130,7 @@ def track(seq, inject_at: int | None = None, inject_deg: float = 0.0, seed: int 
         trans = float(np.linalg.norm(T[:3, 3] - T_world[k][:3, 3]))
         evidence = np.asarray(r.loss_evidence, np.float64)
         rows.append({
-            "frame": k, "rot_deg": rot, "trans_mm": trans, "failed": bool(rot > MAX_DEG or trans > MAX_MM),
+            "frame": k, "rot_deg": rot, "trans_mm": trans, "failed": not bool(success_mask(rot, trans, MAX_DEG, MAX_MM)),
             "status": int(r.status), "confidence": float(r.confidence), "injected": inject_at == k,
             **{name: float(v) for name, v in zip(FEATURES, evidence, strict=True)},
         })
@@ -164,18 +162,14 @@ def probability(w: np.ndarray, rows: list[dict]) -> np.ndarray:
     return 1.0 / (1.0 + np.exp(-np.clip(design(rows) @ w, -30, 30)))
 
 
-def precision_recall(predicted, actual) -> tuple[float, float]:
-    from jaxtrack.track import precision_recall as pr
-
-    return pr(predicted, actual)
-
-
 # --- report -------------------------------------------------------------------------------------------------
 def _f(x, digits=2) -> str:
     return "-" if x is None or not np.isfinite(x) else f"{x:.{digits}f}"
 
 
 def _pr_cells(flag, y) -> str:
+    from jaxtrack.track import precision_recall
+
     p, r = precision_recall(flag, y)
     return f"{_f(p)} | {_f(r)}"
 
@@ -231,7 +225,7 @@ def report(command, elapsed_s, load, calib, evals, w) -> str:
     return "\n".join(lines) + "\n"
 
 
-def plot(path, evals, w) -> None:
+def plot(path, evals) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -297,7 +291,7 @@ def main(argv=None):
     out.write_text(text)
     out.with_suffix(".json").write_text(json.dumps({"features": FEATURES, "weights": w.tolist(),
                                                     "calibration": calib, "evaluation": evals}))
-    plot(out.with_suffix(".png"), evals, w)
+    plot(out.with_suffix(".png"), evals)
     return w
 
 

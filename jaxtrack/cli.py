@@ -558,7 +558,6 @@ def _print_evaluation(ev, per_frame: bool = True) -> None:
         print(f"\nresets (RBOT protocol): {int(ev.reset.sum())}")
 
 
-
 def _cmd_eval(args) -> int:
     """Errors of a results CSV against the sequence's ground truth, as markdown tables."""
     from jaxtrack.track import evaluate_tracking
