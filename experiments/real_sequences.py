@@ -42,11 +42,11 @@ M3T = {
 
 
 def run_one(seq: str, cues: str, region: str, prior: str, out_dir: pathlib.Path, max_frames: int | None,
-            working: str | None = None) -> dict:
+            working: str | None = None, recover: bool = False) -> dict:
     """`jaxtrack track` in a subprocess, then its CSV scored; returns the row."""
     folder, obj = SEQUENCES[seq]
     path = SHARED / "data" / "sequences" / folder
-    tag = f"{seq}_{cues}_{region}_{prior}_{working}".replace("+", "-").replace(",", "_")
+    tag = f"{seq}_{cues}_{region}_{prior}_{working}{'_recover' if recover else ''}".replace("+", "-").replace(",", "_")
     csv = out_dir / f"{tag}.csv"
     cmd = [sys.executable, "-m", "jaxtrack.cli", "track", str(path), "-o", str(csv), "--obj-id", str(obj),
            "--cues", cues.replace("+", ","), "--pose-prior", prior, "--region", region, "--quiet"]
@@ -54,6 +54,8 @@ def run_one(seq: str, cues: str, region: str, prior: str, out_dir: pathlib.Path,
         cmd += ["--max-frames", str(max_frames)]
     if working:
         cmd += ["--working-shape", working]
+    if recover:
+        cmd += ["--recover"]
     t = time.time()
     proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
     wall = time.time() - t
@@ -73,6 +75,7 @@ def run_one(seq: str, cues: str, region: str, prior: str, out_dir: pathlib.Path,
             continue
         steps.append(fr["timings"].get("total_s", np.nan))
     region = region if not working else f"{region} @ {working}"
+    region = region + (" + recovery" if recover else "")
     return {
         "seq": seq, "cues": cues, "region": region, "prior": prior, "frames": int(later.sum()),
         "success": 100.0 * float(np.mean(ev.success[later])), "rot": float(np.nanmean(ev.rot_deg[later])),
@@ -126,6 +129,7 @@ def main(argv=None) -> int:
     ap.add_argument("--max-frames", type=int, default=None)
     ap.add_argument("--working-shape", default=None,
                     help="comma-separated crop working resolutions for jaxtrack track --working-shape (HxW or native)")
+    ap.add_argument("--recover", action="store_true", help="track with `jaxtrack track --recover` (the search after a LOST frame)")
     ap.add_argument("--out", default=str(RESULTS / "real_sequences.md"))
     ap.add_argument("--quick", action="store_true", help="smoke run: 4 frames of the tea box, region only")
     args = ap.parse_args(argv)
@@ -146,7 +150,7 @@ def main(argv=None) -> int:
     rows = []
     with tempfile.TemporaryDirectory(prefix="jaxtrack-real-") as tmp:
         for s, c, r, p, w in grid:
-            row = run_one(s, c, r, p, pathlib.Path(tmp), args.max_frames, w)
+            row = run_one(s, c, r, p, pathlib.Path(tmp), args.max_frames, w, args.recover)
             rows.append(row)
             print(json.dumps(row), flush=True)
             text = report(rows, args, load0, tuple(round(x, 2) for x in os.getloadavg()), (time.time() - t0) / 60)

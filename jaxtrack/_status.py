@@ -23,7 +23,7 @@ import numpy as np
 class Status(enum.IntEnum):
     """Outcome codes shared by every jaxtrack computation (an int32 array inside jit).
 
-    OK, MAX_STEPS, RENDER_OVERFLOW and UNCERTAIN are usable (a warning at most); the others mean the
+    OK, MAX_STEPS, RENDER_OVERFLOW, UNCERTAIN and RECOVERED are usable (a warning at most); the others mean the
     accompanying result is a safe fallback (for a pose: the initial pose), not an answer.
     """
 
@@ -38,6 +38,7 @@ class Status(enum.IntEnum):
     OUT_OF_VIEW = 8
     UNCERTAIN = 9
     LOST = 10
+    RECOVERED = 11
 
     @property
     def message(self) -> str:
@@ -62,8 +63,10 @@ _MESSAGES = {
     Status.OUT_OF_VIEW: "the object is not visible in the image(s)",
     Status.UNCERTAIN: "tracked, but the evidence for the pose is weak",
     Status.LOST: "the evidence says the object was lost",
+    Status.RECOVERED: "the object was lost and found again by the hypothesis search (a new start from its pose)",
 }
-_USABLE = np.array([s in (Status.OK, Status.MAX_STEPS, Status.RENDER_OVERFLOW, Status.UNCERTAIN) for s in Status])
+_USABLE = np.array([s in (Status.OK, Status.MAX_STEPS, Status.RENDER_OVERFLOW, Status.UNCERTAIN, Status.RECOVERED)
+                    for s in Status])
 
 
 class StatusError(RuntimeError):

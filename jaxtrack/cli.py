@@ -436,7 +436,8 @@ def _prepare_tracking(args, seq, out):
               "on_frame": recorder, **({"joint_limits": True} if args.joint_limits else {}),
               **({"pose_prior": args.pose_prior} if getattr(args, "pose_prior", None) is not None else {}),
               **({"region": args.region} if getattr(args, "region", None) is not None else {}),
-              **({"working_shape": args.working_shape} if getattr(args, "working_shape", "default") != "default" else {})}
+              **({"working_shape": args.working_shape} if getattr(args, "working_shape", "default") != "default" else {}),
+              **({"recovery": True} if getattr(args, "recover", False) else {})}
     return kwargs, recorder
 
 
@@ -692,6 +693,10 @@ def build_parser() -> argparse.ArgumentParser:
     track.add_argument("--fps", type=_number(float, 0, low_open=True), default=10.0, help="overlay video frame rate (default 10)")
     track.add_argument("--reset-on-failure", dest="reset_on_failure", action="store_true",
                        help="RBOT protocol: beyond 5 cm / 5° of scene_gt.json, count a failure and restart from the truth")
+    track.add_argument("--recover", action="store_true",
+                       help="after a LOST frame, search for the object (SIFT keyframes + PnP, then pose hypotheses scored on "
+                       "the contour lines) and restart from what is found (status RECOVERED); rigid objects with the line "
+                       "modality; off by default (experiments/results/recovery.md)")
     track.add_argument("--init-pose", dest="init_pose", metavar="POSE",
                        help="first pose, model → first view's camera (mm), instead of scene_gt.json's: a .npy/.json/.txt "
                        "file or 12 (3x4) / 16 (4x4) numbers, row-major, comma-separated")

@@ -19,6 +19,9 @@ import pytest
 # The correspondence-line modality builds a sparse view model per new mesh (2562 views: about 30 s each on
 # 2 cores, cached in ~/.cache/jaxtrack/viewmodels); the suite's trackers use 162 views (same code path).
 os.environ.setdefault("JAXTRACK_VIEW_SUBDIVISIONS", "2")
+# Trackers compile their recovery program when a frame is first lost, not in the background after the first frame:
+# most of the suite's trackers never lose the object (tests/test_tracker.py checks the warm-up itself).
+os.environ.setdefault("JAXTRACK_RECOVERY_WARMUP", "0")
 
 jax.config.update("jax_enable_x64", True)
 

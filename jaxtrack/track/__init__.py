@@ -12,6 +12,9 @@ from ._evaluate import success_mask as success_mask
 from ._overlay import OverlayRecorder as OverlayRecorder
 from ._overlay import OverlayWriter as OverlayWriter
 from ._overlay import overlay_frame as overlay_frame
+from ._recovery import RecoveryConfig as RecoveryConfig
+from ._recovery import RecoveryResult as RecoveryResult
+from ._recovery import recover_pose as recover_pose
 from ._sequence import FrameRecord as FrameRecord
 from ._sequence import TrackingEvaluation as TrackingEvaluation
 from ._sequence import TrackingRun as TrackingRun

@@ -27,6 +27,7 @@ import numpy as np
 from .._status import Status
 from ..geometry import make_camera, rotation_error_deg, stack_cameras
 from ..solve import Cue
+from ._recovery import RecoveryConfig
 from ._step import TrackerConfig, TrackerParams
 from ._tracker import Tracker
 
@@ -134,6 +135,7 @@ def track_sequence(
     region: str | None = None,
     working_shape: tuple[int, int] | None | str = "default",
     reset_on_failure: bool = False,
+    recovery: bool = False,
     max_frames: int | None = None,
     progress: bool = True,
     on_frame: Callable[[FrameRecord], object] | None = None,
@@ -157,6 +159,8 @@ def track_sequence(
         pose_prior: (rotation, translation) relative stiffnesses of the pose prior (default
             `jaxtrack.track.DEFAULT_POSE_PRIOR`; ignored when `params` is given).
         reset_on_failure: the RBOT protocol (needs ground truth for every frame).
+        recovery: search after a LOST frame (`TrackerConfig.recovery` = `RecoveryConfig()`; ignored when `config` is
+            given).
         max_frames: track only the first frames.
         progress: show a progress bar with the frame rate.
         on_frame: called with a `FrameRecord` after every frame (the first included), while tracking,
@@ -211,6 +215,8 @@ def track_sequence(
         raise ValueError(f"joint_limits: obj_id {obj_id} is rigid ({model_path.name}); limits come from a URDF")
     if config is None:
         extra = {} if region is None else {"region_modality": region}
+        if recovery:
+            extra["recovery"] = RecoveryConfig()
         if not (isinstance(working_shape, str) and working_shape == "default"):
             extra["working_shape"] = None if working_shape is None else tuple(int(v) for v in working_shape)
         config = TrackerConfig(cues=tuple(cues), **extra)

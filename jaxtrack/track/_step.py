@@ -59,6 +59,7 @@ from ..modality import (
 from ..render import Mesh, RasterPlan
 from ..solve import Correspondences, CueWeights, SolverConfig, concatenate_correspondences, solve_pose
 from . import _builtin_modalities  # noqa: F401  (registers region/levelset, flow, sift)
+from ._recovery import RecoveryConfig
 
 CUES = ("region", "flow", "sift")
 # The crops' working resolution for rigid objects (TrackerConfig.working_shape "auto"), measured in the README's
@@ -106,6 +107,9 @@ class TrackerConfig(eqx.Module):
             object's size on screen, and the flow, occlusion and renders of the crops at that size. None:
             crops cut at the native resolution in size classes (one compilation per class); the level set's
             chains keep them (the working resolution is not measured on Table II).
+        recovery: the search after a LOST frame (`RecoveryConfig`, `jaxtrack.track.Tracker.step`; where `recovers`
+            holds), or None (the default): a lost frame is reported and tracking goes on from its pose. Off by default:
+            on the loss experiment's sequences it recovered no frame (experiments/results/recovery.md).
     """
 
     cues: tuple = eqx.field(static=True, default=CUES)
@@ -120,6 +124,7 @@ class TrackerConfig(eqx.Module):
     occlusion_config: OcclusionConfig = eqx.field(static=True, default_factory=OcclusionConfig)
     sift_mode: str = eqx.field(static=True, default="surface")
     working_shape: tuple | str | None = eqx.field(static=True, default="auto")
+    recovery: RecoveryConfig | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
         cues = tuple(self.cues)
@@ -202,6 +207,14 @@ class TrackerConfig(eqx.Module):
             return False
         contour = [m for m in self.modalities() if m.contour]
         return bool(contour) and not any(m.needs_render for m in contour)
+
+    def recovers(self) -> bool:
+        """Whether a LOST frame starts the hypothesis search (`recovery`): it needs the calibrated status (what
+        says LOST) and the line modality (what scores and refines the hypotheses); a rigid object's sparse
+        viewpoint model is checked by the tracker."""
+        if self.recovery is None or not self.calibrated_confidence():
+            return False
+        return any(m.name == "lines" for m in self.modalities())
 
     def has(self, cue: str) -> bool:
         """Whether a cue is configured ("region" matches any contour modality)."""

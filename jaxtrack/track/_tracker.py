@@ -12,11 +12,15 @@ Between frames, on the host: the crop around the object (one static size class f
 chosen from the projected model at t with a margin that grows with the last motion), SIFT detection
 and matching (OpenCV, one thread), and a re-plan of the rasteriser when a render overflowed (the
 frame is then redone). Everything else is `track_step`, one compiled program per configuration,
-crop size class and raster plan.
+crop size class and raster plan. After a LOST frame (rigid object, line modality) the hypothesis search
+(`jaxtrack.track._recovery.recover_pose`, compiled in the background after the first frame) looks for the
+pose, and the normal step is run again from what it found (status RECOVERED when that step is OK).
 """
 
 from __future__ import annotations
 
+import os
+import threading
 import time
 
 import equinox as eqx
@@ -27,7 +31,7 @@ import numpy as np
 from .._status import Status
 from ..cues.flow import articulated_params, rigid_params
 from ..cues.levelset import projected_boxes, region_crop, region_params
-from ..cues.lines import line_params
+from ..cues.lines import SparseViewModel, line_params
 from ..cues.occlusion import (
     OcclusionParams,
     init_appearance,
@@ -42,6 +46,8 @@ from ..geometry._validate import checked_rotation
 from ..modality import Pose, StartContext
 from ..render import Mesh, RasterPlan, render, replan
 from ..solve import CueWeights
+from ._keyframes import KeyframeModel
+from ._recovery import recover_pose
 from ._step import (
     LOSS_EVIDENCE,
     LOSS_WEIGHTS,
@@ -55,6 +61,7 @@ from ._step import (
 )
 
 _track_step_jit = eqx.filter_jit(track_step)
+_recover_pose_jit = eqx.filter_jit(recover_pose)
 
 # Factor on the Section V flow weights in the tracker's defaults (see `default_params`).
 TRACKER_FLOW_FACTOR = 0.1
@@ -238,6 +245,14 @@ class Tracker:
         self.joint_limits = joint_limits
         self.prepared: tuple | None = None
         self.pose_prior = pose_prior
+        self.last_good_pose = None  # (4, 4) the last pose reported OK (or RECOVERED): a recovery's second reference
+        self.recoveries = 0  # frames RECOVERED since `start`
+        self._recovery_warmup: threading.Thread | None = None
+        # Compile the recovery program in the background after the first frame (`_warm_up_recovery`);
+        # $JAXTRACK_RECOVERY_WARMUP=0 compiles it when first needed instead (the test suite: most of its trackers
+        # never lose the object, and each compile costs a few seconds of its two cores).
+        self.warm_up_recovery = os.environ.get("JAXTRACK_RECOVERY_WARMUP", "1") != "0"
+        self.keyframes: KeyframeModel | None = None  # SIFT keyframes for the re-detection (`RecoveryConfig.keyframes`)
         if joint_limits is not None or pose_prior is not None:  # checked now, not at the first frame
             default_params(self.model, (64, 64), self.dtype, joint_limits=joint_limits, pose_prior=pose_prior)
 
@@ -418,6 +433,7 @@ class Tracker:
         if not np.any(on_screen):
             raise ValueError("the initial pose puts the object outside every camera's image (T_world_root)")
         self.last_motion_px = 0.0
+        self.last_good_pose, self.recoveries = T, 0
         if self.plan is None:
             self._replan(T, theta)
         self.prepare()
@@ -438,6 +454,11 @@ class Tracker:
         self.frame_dtype = np.uint8 if frames.dtype == np.uint8 else np.dtype(self.dtype)
         states = _initial_modality_states(setup, jnp.asarray(frames, self.dtype), jnp.asarray(offsets), T, theta,
                                           self.params_for(crop_shape), crop_shape, _as_array(scales))
+        self.keyframes = None
+        if self.recovery_modality() is not None and self.config.recovery.keyframes is not None:
+            self.keyframes = KeyframeModel(np.asarray(self.mesh.vertices), np.asarray(self.mesh.faces),
+                                           self.config.recovery.keyframes, self.sift)
+            self._add_keyframe(frames, np.asarray(sil), T)
         return TrackerState(
             T_world_root=T, theta=theta, images=jnp.asarray(self._frames_as_state(frames)),
             data_weight=jnp.ones((self.num_cameras, H, W), self.dtype), visible=sil, appearance=appearance,
@@ -478,11 +499,16 @@ class Tracker:
 
     matches = host_inputs  # the old name (the only host input used to be the SIFT matches)
 
-    def step(self, state: TrackerState, frames, params: TrackerParams | None = None) -> tuple[TrackerState, FrameResult, dict]:
+    def step(self, state: TrackerState, frames, params: TrackerParams | None = None,
+             recover: bool = True) -> tuple[TrackerState, FrameResult, dict]:
         """Track frames t+1 from `state` at t. Never raises for tracking failures (see `FrameResult.status`).
 
+        A frame the step reports LOST starts the hypothesis search where the configuration recovers
+        (`TrackerConfig.recovers`; `recover=False`: not this frame), see `_recover`.
+
         Returns:
-            (state at t+1, `FrameResult`, info: host timings in seconds and the crop).
+            (state at t+1, `FrameResult`, info: host timings in seconds, the crop, and "recovery": None, or what the
+            search after a LOST frame found (scores, hypothesis, "recovered")).
 
         Raises:
             ValueError: malformed frames.
@@ -503,9 +529,33 @@ class Tracker:
         params = self.params_for(crop_shape) if params is None else params
         frames_j = jnp.asarray(self._frames_as_state(frames))
         step_start = time.perf_counter()
+        new_state, result = self._run_step(state, frames_j, host, offsets, params, crop_shape, scales)
+        timings["step_s"] = time.perf_counter() - step_start
+        recovery = None
+        if recover and int(result.status) == Status.LOST and self.recovery_modality() is not None:
+            rec_start = time.perf_counter()
+            new_state, result, recovery = self._recover(state, new_state, result, frames, frames_j, params)
+            offsets, crop_shape, scales = recovery.pop("windows")
+            timings["recovery_s"] = time.perf_counter() - rec_start
+        elif int(result.status) == Status.OK:
+            self.last_good_pose = result.T_world_root
+            if self.keyframes is not None and self.keyframes.wants(result.T_world_root):
+                key_start = time.perf_counter()
+                self._add_keyframe(frames, np.asarray(new_state.visible), result.T_world_root)
+                timings["keyframe_s"] = time.perf_counter() - key_start
+        if self.warm_up_recovery and self._recovery_warmup is None and self.recovery_modality() is not None:
+            self._warm_up_recovery(new_state, frames_j, params)
+        timings["total_s"] = time.perf_counter() - start
+        moved = projected_boxes(self.mesh, self.cameras, result.T_world_root, result.theta, self.model)
+        if np.all(np.isfinite(moved)) and np.all(np.isfinite(before)):
+            self.last_motion_px = float(np.max(np.abs(moved - before)))
+        return new_state, result, {"timings": timings, "offsets": offsets, "crop_shape": crop_shape, "scales": scales,
+                                   "recovery": recovery}
+
+    def _run_step(self, state, frames_j, host, offsets, params, crop_shape, scales):
+        """The compiled step; after a render overflow the plans are made again and the frame is redone."""
         for _ in range(3):
-            setup = self.setup()
-            new_state, result = _track_step_jit(setup, state, frames_j, host, jnp.asarray(offsets), params, crop_shape,
+            new_state, result = _track_step_jit(self.setup(), state, frames_j, host, jnp.asarray(offsets), params, crop_shape,
                                                 _as_array(scales))
             if int(result.status) != Status.RENDER_OVERFLOW:
                 break
@@ -513,12 +563,129 @@ class Tracker:
             self._replan(result.T_world_root, result.theta, (offsets, crop_shape, scales),
                          poses=((state.T_world_root, state.theta),))
         jax.block_until_ready(result)
-        timings["step_s"] = time.perf_counter() - step_start
-        timings["total_s"] = time.perf_counter() - start
-        moved = projected_boxes(self.mesh, self.cameras, result.T_world_root, result.theta, self.model)
-        if np.all(np.isfinite(moved)) and np.all(np.isfinite(before)):
-            self.last_motion_px = float(np.max(np.abs(moved - before)))
-        return new_state, result, {"timings": timings, "offsets": offsets, "crop_shape": crop_shape, "scales": scales}
+        return new_state, result
+
+    # --- recovery (issue 24) ------------------------------------------------------------------------
+    def recovery_modality(self) -> int | None:
+        """Index of the line modality whose sparse viewpoint model and histograms the recovery uses; None when the
+        configuration does not recover (`TrackerConfig.recovers`) or the object has no view model (a chain)."""
+        if not self.config.recovers():
+            return None
+        prepared = self.prepare()
+        for i, m in enumerate(self.config.modalities()):
+            if m.name == "lines" and isinstance(prepared[i], SparseViewModel):
+                return i
+        return None
+
+    def _camera_arrays(self):
+        return (np.asarray(self.cameras.K, np.float64), np.asarray(self.cameras.dist, np.float64),
+                np.asarray(self.cameras.T_cam_world, np.float64))
+
+    def _add_keyframe(self, frames: np.ndarray, visible: np.ndarray, T) -> int:
+        K, dist, T_cam_world = self._camera_arrays()
+        return self.keyframes.add(frames, visible, K, dist, T_cam_world, np.asarray(T, np.float64))
+
+    def _search_regions(self, poses) -> np.ndarray:
+        """(C, H, W) bool: the union of the object's boxes at `poses` ((T, Θ) pairs), grown by
+        `KeyframeConfig.region_growth` times its size on each side (where the re-detection looks)."""
+        H, W = self.cameras.height, self.cameras.width
+        boxes = np.stack([projected_boxes(self.mesh, self.cameras, T, th, self.model) for T, th in poses])  # (P, C, 4)
+        regions = np.zeros((self.num_cameras, H, W), bool)
+        grow = self.config.recovery.keyframes.region_growth
+        for c in range(self.num_cameras):
+            b = boxes[:, c][np.isfinite(boxes[:, c]).all(1)]
+            if not len(b):
+                continue
+            x0, y0, x1, y1 = b[:, 0].min(), b[:, 1].min(), b[:, 2].max(), b[:, 3].max()
+            gx, gy = grow * (x1 - x0 + 1), grow * (y1 - y0 + 1)
+            x0, x1 = int(np.clip(x0 - gx, 0, W - 1)), int(np.clip(x1 + gx, 0, W - 1))
+            y0, y1 = int(np.clip(y0 - gy, 0, H - 1)), int(np.clip(y1 + gy, 0, H - 1))
+            regions[c, y0:y1 + 1, x0:x1 + 1] = True
+        return regions
+
+    def _recovery_args(self, state: TrackerState, frames_j, references, params: TrackerParams) -> tuple:
+        i = self.recovery_modality()
+        lines = self.config.modalities()[i]
+        return (self.cameras, frames_j, self.prepared[i], state.modalities[i].histograms, params.lines, references,
+                tuple(lines.scales), tuple(lines.standard_deviations), lines.rounds, self.config.recovery)
+
+    def _warm_up_recovery(self, state: TrackerState, frames_j, params: TrackerParams) -> None:
+        """Compile the recovery program in a background thread (after the first frame: the step's compile comes
+        first), so that the first lost frame does not wait for it."""
+        args = self._recovery_args(state, frames_j, jnp.stack([state.T_world_root] * 2), params)
+        thread = threading.Thread(target=lambda: jax.block_until_ready(_recover_pose_jit(*args)), daemon=True,
+                                  name="jaxtrack-recovery-compile")
+        thread.start()
+        self._recovery_warmup = thread
+
+    def recover(self, state: TrackerState, frames, reference=None, params: TrackerParams | None = None):
+        """The hypothesis search alone (`recover_pose`) on frames (C, H, W[, 3]) with the line histograms of `state`,
+        around `reference` (4, 4) (default: the state's pose) and the last pose reported OK. Returns a
+        `RecoveryResult` (its `T_world_root` is the best refined pose)."""
+        if self.recovery_modality() is None:
+            raise ValueError("recover: this tracker has no recovery (needs TrackerConfig.recovers() and a rigid object)")
+        frames_j = jnp.asarray(self._frames_as_state(self.check_frames(frames, "frames")))
+        params = self.params_for(self.crop_shape) if params is None else params
+        reference = state.T_world_root if reference is None else jnp.asarray(reference, self.dtype)
+        good = state.T_world_root if self.last_good_pose is None else self.last_good_pose
+        return _recover_pose_jit(*self._recovery_args(state, frames_j, jnp.stack([reference, good]), params))
+
+    def _recover(self, state: TrackerState, lost_state: TrackerState, lost: FrameResult, frames, frames_j, params):
+        """After a LOST frame: search for the pose (`recover`), then the normal step again on frames t+1 → t+1 from
+        what it found (no motion: the prediction is the found pose). Its status OK makes the frame RECOVERED and
+        its state the next one; otherwise the frame stays LOST, and the colour histograms and the appearance model
+        are not updated from it (`lost_state` with those of `state`)."""
+        frozen = eqx.tree_at(lambda s: (s.appearance, s.modalities), lost_state, (state.appearance, state.modalities))
+        theta = lost.theta
+        info = {"recovered": False, "source": None}
+        if self.keyframes is not None:  # re-detection: keyframe descriptors → PnP + RANSAC
+            good = state.T_world_root if self.last_good_pose is None else self.last_good_pose
+            regions = self._search_regions(((lost.T_world_root, theta), (good, theta)))
+            K, dist, T_cam_world = self._camera_arrays()
+            pnp = self.keyframes.locate(frames, regions, K, dist, T_cam_world)
+            info["pnp_inliers"] = 0 if pnp is None else pnp.inliers
+            if pnp is not None:
+                info["source"], info["T_found"] = "keyframes", pnp.T_world_root
+                out = self._restart(state, frozen, lost, frames, frames_j, params, jnp.asarray(pnp.T_world_root, self.dtype), info)
+                if info["recovered"]:
+                    return out
+        if self._recovery_warmup is not None:
+            self._recovery_warmup.join()
+        found = self.recover(state, frames, lost.T_world_root, params)
+        info.update({"score": float(found.score), "own_score": float(found.own_score), "hypothesis": int(found.index),
+                     "T_found": np.asarray(found.T_world_root), "source": "region"})
+        if not float(found.score) >= float(found.own_score) + self.config.recovery.margin:  # nothing clearly better
+            info["windows"] = self.windows(lost.T_world_root, theta)
+            return frozen, lost, info
+        return self._restart(state, frozen, lost, frames, frames_j, params, found.T_world_root, info)
+
+    def _restart(self, state, frozen, lost, frames, frames_j, params, T_found, info):
+        """The normal step on frames t+1 → t+1 from a found pose: (state, result) RECOVERED when it is OK, else
+        (`frozen`, `lost`); `info` gets "windows", "confidence", "recovered"."""
+        theta = lost.theta
+        boxes = projected_boxes(self.mesh, self.cameras, T_found, theta, self.model)
+        H, W = self.cameras.height, self.cameras.width
+        on_screen = np.isfinite(boxes).all(1) & (boxes[:, 2] >= 0) & (boxes[:, 0] < W) & (boxes[:, 3] >= 0) & (boxes[:, 1] < H)
+        offsets, crop_shape, scales = self.windows(T_found, theta, boxes) if on_screen.any() else (None, None, None)
+        if offsets is None:
+            info["windows"] = self.windows(lost.T_world_root, theta)
+            return frozen, lost, info
+        visible = np.zeros((self.num_cameras, H, W), bool)  # the SIFT mask of "frame t" (= t+1): the found box
+        for c, (x0, y0, x1, y1) in enumerate(np.clip(np.nan_to_num(boxes), 0, [W - 1, H - 1, W - 1, H - 1]).astype(int)):
+            visible[c, y0:y1 + 1, x0:x1 + 1] = on_screen[c]
+        restart = eqx.tree_at(lambda s: (s.T_world_root, s.images, s.data_weight, s.visible), state,
+                              (T_found, frames_j, jnp.ones_like(state.data_weight), jnp.asarray(visible)))
+        host = self.host_inputs(restart, frames)
+        params_r = self.params_for(crop_shape) if self.user_params is None else params
+        new_state, result = self._run_step(restart, frames_j, host, offsets, params_r, crop_shape, scales)
+        info["windows"] = (offsets, crop_shape, scales)
+        info["confidence"] = float(result.confidence)
+        if int(result.status) != Status.OK:
+            return frozen, lost, info
+        info["recovered"] = True
+        self.recoveries += 1
+        self.last_good_pose = result.T_world_root
+        return new_state, eqx.tree_at(lambda r: r.status, result, jnp.asarray(Status.RECOVERED, jnp.int32)), info
 
     def _out_of_view(self, state: TrackerState) -> FrameResult:
         C, dt = self.num_cameras, self.dtype

@@ -1,0 +1,175 @@
+"""Keyframes for re-detection after a loss (issue 24): SIFT descriptors with their 3D model points, and a pose from
+a frame by matching them and PnP + RANSAC (host side, OpenCV and embree).
+
+A keyframe is taken where the pose is known or trusted: the first frame, and later frames reported OK whose
+rotation differs from every keyframe's by more than `min_angle_deg` (the object shows other faces), up to
+`max_keyframes` (the oldest after the first is replaced). Its keypoints inside the visible object region are lifted
+onto the mesh by casting their camera rays (embree through trimesh, in the model frame): each keeps its descriptor
+and its model point.
+
+`locate` detects SIFT in a region of a new frame, matches it against every keyframe's descriptors (Lowe's ratio
+test, conflicts dropped) and solves PnP with RANSAC (`cv2.solvePnPRansac`, EPnP, then Levenberg-Marquardt on the
+inliers). Unlike the region energy on the contour, the keypoints tell a symmetric object's turned poses apart
+where it is textured; an untextured object gives no pose (too few inliers).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from ..cues.sift import SiftConfig
+from ..cues.sift._detect import detect_sift, match_descriptors, opencv_threads
+
+
+@dataclasses.dataclass(frozen=True)
+class KeyframeConfig:
+    """Settings of the keyframe model and of the PnP re-detection.
+
+    Attributes:
+        max_keyframes: keyframes kept (the first frame's always).
+        min_angle_deg: a frame reported OK becomes a keyframe when its rotation differs from every keyframe's by more.
+        ratio: Lowe's ratio bound of the descriptor matches (0.8: his recognition setting).
+        reprojection_px: RANSAC's inlier bound, px per 1000 px of image diagonal (4 px at 400 px, 8 at 800).
+        min_inliers: fewest RANSAC inliers for a pose.
+        iterations: RANSAC iterations.
+        region_growth: the search region is the box of the reference poses grown by this times its size on each side.
+    """
+
+    max_keyframes: int = 8
+    min_angle_deg: float = 30.0
+    ratio: float = 0.8
+    reprojection_px: float = 10.0
+    min_inliers: int = 12
+    iterations: int = 500
+    region_growth: float = 1.0
+
+    def __post_init__(self):
+        if self.max_keyframes < 1 or self.min_inliers < 4 or self.iterations < 1:
+            raise ValueError("KeyframeConfig: max_keyframes ≥ 1, min_inliers ≥ 4 and iterations ≥ 1 required")
+        if not 0.0 < self.ratio <= 1.0 or self.reprojection_px <= 0 or self.min_angle_deg < 0 or self.region_growth < 0:
+            raise ValueError("KeyframeConfig: ratio in (0, 1], reprojection_px > 0, min_angle_deg ≥ 0, region_growth ≥ 0")
+
+
+@dataclasses.dataclass
+class Keyframe:
+    """One keyframe: descriptors (n, 128) float32, model points (n, 3) (mm), the pose's rotation (3, 3) model → world."""
+
+    descriptors: np.ndarray
+    points_model: np.ndarray
+    R_world_root: np.ndarray
+
+
+@dataclasses.dataclass
+class PnPResult:
+    """A pose from the keyframes: T_world_root (4, 4), inliers (RANSAC), matches tried, camera used."""
+
+    T_world_root: np.ndarray
+    inliers: int
+    matches: int
+    camera: int
+
+
+def _rotation_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
+    c = (np.trace(Ra.T @ Rb) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+class KeyframeModel:
+    """The keyframes of one rigid object seen by a rig (host side).
+
+    Args:
+        vertices, faces: the mesh (model frame, mm).
+        config: `KeyframeConfig`; sift: detection settings (detected at the frames' own resolution).
+    """
+
+    def __init__(self, vertices, faces, config: KeyframeConfig | None = None, sift: SiftConfig | None = None):
+        import trimesh
+        from trimesh.ray.ray_pyembree import RayMeshIntersector
+
+        self.config = KeyframeConfig() if config is None else config
+        self.sift = dataclasses.replace(SiftConfig() if sift is None else sift, max_side=0)
+        self.intersector = RayMeshIntersector(trimesh.Trimesh(np.asarray(vertices, np.float64), np.asarray(faces), process=False))
+        self.keyframes: list[Keyframe] = []
+
+    def __len__(self) -> int:
+        return len(self.keyframes)
+
+    def wants(self, T_world_root) -> bool:
+        """Whether a frame at this pose (reported OK) would be a new keyframe (its rotation is new)."""
+        R = np.asarray(T_world_root, np.float64)[:3, :3]
+        return all(_rotation_deg(R, k.R_world_root) > self.config.min_angle_deg for k in self.keyframes)
+
+    def add(self, images, masks, K, dist, T_cam_world, T_world_root) -> int:
+        """Take a keyframe from (C, H, W, 3) images at a trusted pose; `masks` (C, H, W) the visible object pixels,
+        K (C, 3, 3), dist (C, 5), T_cam_world (C, 4, 4). Returns the keypoints kept (on the mesh)."""
+        T = np.asarray(T_world_root, np.float64)
+        desc, pts = [], []
+        for c in range(len(images)):
+            xy, d = detect_sift(images[c], masks[c], self.sift)
+            if not len(xy):
+                continue
+            T_model_cam = np.linalg.inv(np.asarray(T_cam_world[c], np.float64) @ T)
+            rays = _rays(xy, K[c], dist[c])  # camera frame
+            origin = np.repeat(T_model_cam[:3, 3][None], len(rays), 0)
+            loc, index, _ = self.intersector.intersects_location(origin, rays @ T_model_cam[:3, :3].T, multiple_hits=False)
+            if len(index):
+                desc.append(d[index])
+                pts.append(loc)
+        if not desc:
+            return 0
+        frame = Keyframe(np.concatenate(desc).astype(np.float32), np.concatenate(pts), T[:3, :3].copy())
+        if len(self.keyframes) >= self.config.max_keyframes:
+            self.keyframes.pop(1 if len(self.keyframes) > 1 else 0)
+        self.keyframes.append(frame)
+        return len(frame.descriptors)
+
+    def locate(self, images, regions, K, dist, T_cam_world) -> PnPResult | None:
+        """The pose of the object in (C, H, W, 3) images from the keyframes: SIFT in each camera's `regions` (C, H, W)
+        bool, matched to every keyframe, PnP + RANSAC per camera; the camera with the most inliers wins. None when no
+        camera has `min_inliers`."""
+        import cv2
+
+        if not self.keyframes:
+            return None
+        desc_k = np.concatenate([k.descriptors for k in self.keyframes])
+        pts_k = np.concatenate([k.points_model for k in self.keyframes])
+        best = None
+        for c in range(len(images)):
+            xy, d = detect_sift(images[c], regions[c], self.sift)
+            ia, ib, _ = match_descriptors(desc_k, d, self.config.ratio)
+            if len(ia) < self.config.min_inliers:
+                continue
+            h, w = images[c].shape[:2]
+            bound = self.config.reprojection_px * float(np.hypot(h, w)) / 1000.0
+            obj, img = pts_k[ia].astype(np.float64), xy[ib].astype(np.float64)
+            Kc, dc = np.asarray(K[c], np.float64), np.asarray(dist[c], np.float64)
+            with opencv_threads(1):
+                ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, Kc, dc, iterationsCount=self.config.iterations,
+                                                         reprojectionError=bound, confidence=0.999, flags=cv2.SOLVEPNP_EPNP)
+                if not ok or inl is None or len(inl) < self.config.min_inliers:
+                    continue
+                inl = inl[:, 0]
+                ok, rvec, tvec = cv2.solvePnP(obj[inl], img[inl], Kc, dc, rvec, tvec, useExtrinsicGuess=True,
+                                              flags=cv2.SOLVEPNP_ITERATIVE)
+            if not ok or tvec[2, 0] <= 0:
+                continue
+            T_cam_model = np.eye(4)
+            T_cam_model[:3, :3] = cv2.Rodrigues(rvec)[0]
+            T_cam_model[:3, 3] = tvec[:, 0]
+            found = PnPResult(np.linalg.inv(np.asarray(T_cam_world[c], np.float64)) @ T_cam_model, len(inl), len(ia), c)
+            if best is None or found.inliers > best.inliers:
+                best = found
+        return best
+
+
+def _rays(xy, K, dist) -> np.ndarray:
+    """(n, 3) unit camera-frame ray directions of pixels (n, 2) (distorted, as in the image)."""
+    import cv2
+
+    pts = np.asarray(xy, np.float64).reshape(-1, 1, 2)
+    with opencv_threads(1):
+        norm = cv2.undistortPoints(pts, np.asarray(K, np.float64), np.asarray(dist, np.float64)).reshape(-1, 2)
+    rays = np.concatenate([norm, np.ones((len(norm), 1))], axis=1)
+    return rays / np.linalg.norm(rays, axis=1, keepdims=True)

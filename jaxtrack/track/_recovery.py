@@ -1,0 +1,206 @@
+"""Recovery after a LOST frame (issue 24): a batch of pose hypotheses, scored by the region energy on the
+correspondence lines in one vmapped call; the best few refined by the lines; the best refined pose back. (The
+tracker tries the keyframes' PnP re-detection first, `_keyframes.py`, where `RecoveryConfig.keyframes` is set.)
+
+Hypotheses (K = R · Q, static): the R reference poses (the lost frame's result, which usually keeps the
+silhouette, and the last pose reported OK) each turned about the model's centre by Q rotations that
+cover SO(3) around it: the identity, and `angles_deg` about each of the icosphere's axes
+(`axis_subdivisions` 1: 42 axes; 6 angles: Q = 253).
+
+Score of a pose (the region energy of eq. 11 in the limit of a hard shape prior, read on the lines): each
+line of the sparse viewpoint model's nearest view is read at `score_scale` px per segment; the segments on
+the model's inside should be foreground and those outside background, and a segment's posterior of its
+side is σ(±Σ log h_f/h_b) (the lines' colour histograms). The score is the mean posterior over segments and
+lines, an invalid line (off the image, too short) counting ½ (no evidence): 1 when every segment agrees, ½
+for a pose the colours cannot tell from any other. The refined candidates are compared at the finest
+scale of the lines' schedule (`final_scale`).
+
+One compiled program per tracker (rig, mesh, view model and these static settings); `Tracker` compiles it at
+start when recovery is on, so no frame waits for it.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._status import Status, is_usable
+from ..cues.lines import ColourHistograms, LineConfig, LineParams, SparseViewModel, line_rows
+from ..cues.lines._histograms import colour_index, log_odds_of_cells
+from ..cues.lines._lines import DEFAULT_LINE_CONFIG, M3T_SOLVER, _scale, project_contour, sample_lines, schedule
+from ..cues.lines._viewmodel import icosphere, points_for_pose
+from ..geometry import Camera, rigid_model, so3_exp
+from ..solve import solve_pose
+from ._keyframes import KeyframeConfig
+
+
+class RecoveryConfig(eqx.Module):
+    """Static settings of the hypothesis search (they shape the compiled program).
+
+    Attributes:
+        axis_subdivisions: icosphere subdivisions of the rotation axes (0: 12 axes, 1: 42, 2: 162).
+        angles_deg: rotation angles about each axis (the identity is always a hypothesis).
+        refine: hypotheses refined by the lines (the best by score; the lost frame's own pose is always one).
+        score_scale: px per segment of the hypotheses' score (coarse: the lines reach 19 · scale px).
+        final_scale: px per segment of the refined candidates' score.
+        keyframes: re-detection first (`jaxtrack.track._keyframes`: SIFT keyframes with model points, PnP + RANSAC),
+            or None: the region search alone.
+        margin: a found pose is taken only when its score beats the lost frame's own refined pose by this much
+            (the score cannot tell a symmetric object's turned poses apart: a 180° flip of a box scores within
+            0.01 of the right pose; measured in experiments/results/recovery.md).
+    """
+
+    axis_subdivisions: int = eqx.field(static=True, default=1)
+    angles_deg: tuple = eqx.field(static=True, default=(20.0, 40.0, 70.0, 100.0, 140.0, 180.0))
+    refine: int = eqx.field(static=True, default=4)
+    score_scale: int = eqx.field(static=True, default=5)
+    final_scale: int = eqx.field(static=True, default=2)
+    margin: float = eqx.field(static=True, default=0.02)
+    keyframes: KeyframeConfig | None = eqx.field(static=True, default_factory=KeyframeConfig)
+
+    def __check_init__(self):
+        if not 0 <= self.axis_subdivisions <= 3:
+            raise ValueError(f"RecoveryConfig.axis_subdivisions must be 0..3, got {self.axis_subdivisions}")
+        if self.refine < 1 or self.score_scale < 1 or self.final_scale < 1:
+            raise ValueError("RecoveryConfig: refine, score_scale and final_scale must be ≥ 1")
+        if any(not 0 < a <= 180 for a in self.angles_deg):
+            raise ValueError(f"RecoveryConfig.angles_deg must be in (0, 180], got {self.angles_deg}")
+
+    def rotation_offsets(self) -> np.ndarray:
+        """(Q, 3) rotation vectors (rad) of the hypotheses about a reference: 0, then every angle about every axis."""
+        axes, _ = icosphere(self.axis_subdivisions)
+        axes = axes / np.linalg.norm(axes, axis=1, keepdims=True)
+        turned = [axes * np.radians(a) for a in self.angles_deg]
+        return np.concatenate([np.zeros((1, 3))] + turned, axis=0)
+
+
+class RecoveryResult(eqx.Module):
+    """What `recover_pose` found.
+
+    Attributes:
+        T_world_root: (4, 4) the best refined pose.
+        score: its score at `final_scale` (mean posterior of the lines' segments, ½ = no evidence).
+        own_score: the same score of reference 0 refined (the lost frame's own pose: what recovery must beat).
+        index: int32 hypothesis the best pose was refined from (0: reference 0 itself).
+        scores: (K,) every hypothesis' score at `score_scale`.
+        status: int32 `Status` of the best candidate's last solve.
+    """
+
+    T_world_root: jax.Array
+    score: jax.Array
+    own_score: jax.Array
+    index: jax.Array
+    scores: jax.Array
+    status: jax.Array
+
+
+def line_agreement(camera: Camera, T_world_root, view_model: SparseViewModel, image, histograms: ColourHistograms,
+                   params: LineParams, scale, config: LineConfig = DEFAULT_LINE_CONFIG):
+    """(agreement, valid lines) of a pose in one camera: the mean over the view's N lines of the mean over their
+    segments of the posterior of the side the pose puts them on (inside: foreground), invalid lines ½. Jittable.
+
+    Args:
+        camera: a single camera; T_world_root: (4, 4) the pose; view_model: the sparse viewpoint model.
+        image: (H, W, 3) colours 0-255; histograms: the camera's colour histograms; scale: px per segment.
+    """
+    dtype = camera.K.dtype
+    T = jnp.asarray(T_world_root, dtype)
+    points = points_for_pose(view_model, camera, T)
+    proj = project_contour(camera, T, points)
+    scale = _scale(scale, config)
+    samples = sample_lines(image, proj.center, proj.normal, scale, config)
+    cells = colour_index(samples.colour, histograms.bins)
+    lo = jnp.where(samples.mask, log_odds_of_cells(histograms, cells, params.posterior_prior), 0.0)
+    S = config.num_segments
+    seg = jnp.arange(config.max_pixels) // scale
+    onehot = (seg[:, None] == jnp.arange(S)[None, :]).astype(lo.dtype)
+    seg_lo = lo @ onehot  # (N, S) inside → outside
+    half = (S - 1) / 2  # the middle segment straddles the contour: left out
+    index = jnp.arange(S)
+    side = jnp.where(index < half, 1.0, jnp.where(index > half, -1.0, 0.0)).astype(dtype)
+    agree = jax.nn.sigmoid(side[None, :] * seg_lo)
+    line_score = jnp.sum(jnp.where(side[None, :] != 0, agree, 0.0), axis=1) / jnp.sum(side != 0)
+    z = jnp.where(proj.valid, proj.depth, 1.0)
+    seg_px = scale.astype(dtype) * samples.step
+    continuous = jnp.minimum(points.foreground_distance, points.background_distance) * camera.K[0, 0] / (z * seg_px)
+    valid = proj.valid & samples.inside & (continuous >= params.min_continuous_distance)
+    n = jnp.maximum(jnp.sum(points.valid), 1)
+    score = (jnp.sum(jnp.where(valid, line_score, 0.0)) + 0.5 * jnp.sum(points.valid & ~valid)) / n
+    return score.astype(dtype), jnp.sum(valid).astype(jnp.int32)
+
+
+def rig_agreement(cameras: Camera, T_world_root, view_model, frames, histograms, params: LineParams, scale,
+                  config: LineConfig = DEFAULT_LINE_CONFIG):
+    """`line_agreement` over a rig (C stacked cameras, frames (C, H, W, 3), histograms with a leading C axis): the
+    cameras' agreements weighted by their valid lines (½ where no camera has one). Jittable, vmappable over poses."""
+    C = cameras.K.shape[0]
+    total, count = jnp.zeros((), cameras.K.dtype), jnp.zeros((), jnp.int32)
+    for c in range(C):
+        cam = jax.tree.map(lambda a, c=c: a[c], cameras)
+        hist = jax.tree.map(lambda a, c=c: a[c], histograms)
+        s, n = line_agreement(cam, T_world_root, view_model, frames[c], hist, params, scale, config)
+        total, count = total + s * n, count + n
+    return jnp.where(count > 0, total / jnp.maximum(count, 1), 0.5)
+
+
+def hypothesis_poses(references, offsets, center):
+    """(R · Q, 4, 4) poses: each reference (R, 4, 4) turned by each rotation vector of `offsets` (Q, 3) about the
+    model point `center` (3,) (which stays where the reference puts it). Reference r's hypotheses are r·Q .. r·Q+Q−1,
+    the first of each the reference itself when offsets[0] = 0."""
+    dtype = references.dtype
+    dR = jax.vmap(so3_exp)(jnp.asarray(offsets, dtype))  # (Q, 3, 3)
+    c = jnp.asarray(center, dtype)
+    local = jnp.zeros((dR.shape[0], 4, 4), dtype).at[:, :3, :3].set(dR).at[:, 3, 3].set(1.0)
+    local = local.at[:, :3, 3].set(c - jnp.einsum("qij,j->qi", dR, c))  # x ↦ dR (x − c) + c
+    return jnp.einsum("rij,qjk->rqik", references, local).reshape((-1, 4, 4))
+
+
+def refine_on_lines(cameras: Camera, T_world_root, view_model, frames, histograms, params: LineParams, scales,
+                    standard_deviations, num_rounds: int, config: LineConfig = DEFAULT_LINE_CONFIG):
+    """`num_rounds` rounds of {every camera's line rows → one solve} from a pose (the lines' own schedule, M3T's
+    two Gauss-Newton steps per round). Returns (T (4, 4), status). Jittable, vmappable over poses."""
+    kin = rigid_model(cameras.K.dtype)
+    C = cameras.K.shape[0]
+
+    def body(r, carry):
+        T, _ = carry
+        scale, std = schedule(scales, standard_deviations, r)
+        sets = [line_rows(jax.tree.map(lambda a, c=c: a[c], cameras), T, view_model, frames[c],
+                          jax.tree.map(lambda a, c=c: a[c], histograms), params, scale, std, config, camera_index=c)
+                for c in range(C)]
+        corr = jax.tree.map(lambda *a: jnp.concatenate(a), *sets)
+        sol = solve_pose(kin, corr, T, None, M3T_SOLVER, cameras=cameras)
+        return jnp.where(is_usable(sol.status), sol.T_world_root, T), sol.status
+
+    T0 = jnp.asarray(T_world_root, cameras.K.dtype)
+    return jax.lax.fori_loop(0, num_rounds, body, (T0, jnp.asarray(Status.OK, jnp.int32)))
+
+
+def recover_pose(cameras: Camera, frames, view_model: SparseViewModel, histograms: ColourHistograms, params: LineParams,
+                 references, scales, standard_deviations, num_rounds: int, config: RecoveryConfig | None = None,
+                 line_config: LineConfig = DEFAULT_LINE_CONFIG) -> RecoveryResult:
+    """Search for the pose of frames (C, H, W, 3) near `references` (R, 4, 4); reference 0 is the lost frame's pose.
+
+    Every hypothesis (`hypothesis_poses`) is scored at `config.score_scale` in one vmapped call; reference 0 and the
+    `config.refine − 1` best others are refined (`refine_on_lines`, vmapped; `scales`, `standard_deviations`,
+    `num_rounds`: the line modality's schedule) and compared at `config.final_scale`. Jittable.
+    """
+    config = RecoveryConfig() if config is None else config
+    dtype = cameras.K.dtype
+    frames = jnp.asarray(frames)
+    offsets = config.rotation_offsets()
+    hyps = hypothesis_poses(jnp.asarray(references, dtype), offsets, view_model.center)
+    score = lambda T, s: rig_agreement(cameras, T, view_model, frames, histograms, params, s, line_config)
+    scores = jax.vmap(lambda T: score(T, config.score_scale))(hyps)
+    ranked = scores.at[0].set(jnp.inf)  # the lost frame's own pose is always refined (recovery must beat it)
+    _, top = jax.lax.top_k(ranked, min(config.refine, hyps.shape[0]))
+    refined, status = jax.vmap(lambda T: refine_on_lines(cameras, T, view_model, frames, histograms, params,
+                                                         jnp.asarray(scales, jnp.int32),
+                                                         jnp.asarray(standard_deviations, dtype), num_rounds,
+                                                         line_config))(hyps[top])
+    final = jax.vmap(lambda T: score(T, config.final_scale))(refined)
+    best = jnp.argmax(final)
+    return RecoveryResult(T_world_root=refined[best], score=final[best], own_score=final[0], index=top[best].astype(jnp.int32),
+                          scores=scores, status=status[best].astype(jnp.int32))
