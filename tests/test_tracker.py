@@ -419,6 +419,32 @@ def test_confidence_falls_with_a_controlled_misalignment(sequence, lines_sift):
 
 
 @pytest.mark.xdist_group("lines_sift")
+def test_the_recovery_program_is_compiled_before_a_frame_is_lost(sequence, lines_sift):
+    """No frame waits for a compile after the first: the first step starts the recovery program's compile in a
+    background thread (`Tracker.warm_up_recovery`, off in this suite by $JAXTRACK_RECOVERY_WARMUP=0), and a search
+    after it traces nothing new."""
+    from jaxtrack.track._recovery import recover_pose
+
+    tracker, state, _ = lines_sift
+    saved = dict(vars(tracker))
+    try:
+        tracker.warm_up_recovery, tracker._recovery_warmup = True, None
+        first = eqx.debug.get_num_traces(recover_pose)
+        new_state, _, _ = tracker.step(state, sequence["images"][2])
+        thread = tracker._recovery_warmup
+        assert thread is not None and thread.name == "jaxtrack-recovery-compile"
+        thread.join()
+        before = eqx.debug.get_num_traces(recover_pose)
+        assert before == first + 1  # the warm-up traced it (this group's first use: the test runs before the others)
+        found = tracker.recover(new_state, sequence["images"][3])
+        assert eqx.debug.get_num_traces(recover_pose) == before
+        assert np.all(np.isfinite(np.asarray(found.T_world_root)))
+    finally:
+        vars(tracker).clear()
+        vars(tracker).update(saved)
+
+
+@pytest.mark.xdist_group("lines_sift")
 def test_hypothesis_scores_under_vmap_equal_one_at_a_time(sequence, lines_sift):
     """Issue 24: the recovery scores every hypothesis in one vmapped call; each score equals the same pose scored
     alone, and the search's own scores are those (2 references and 253 rotations each)."""

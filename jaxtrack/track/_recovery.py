@@ -178,6 +178,7 @@ def refine_on_lines(cameras: Camera, T_world_root, view_model, frames, histogram
     return jax.lax.fori_loop(0, num_rounds, body, (T0, jnp.asarray(Status.OK, jnp.int32)))
 
 
+@eqx.debug.assert_max_traces(max_traces=None)  # counts traces (`eqx.debug.get_num_traces`), never fails
 def recover_pose(cameras: Camera, frames, view_model: SparseViewModel, histograms: ColourHistograms, params: LineParams,
                  references, scales, standard_deviations, num_rounds: int, config: RecoveryConfig | None = None,
                  line_config: LineConfig = DEFAULT_LINE_CONFIG) -> RecoveryResult:
