@@ -141,3 +141,30 @@ def test_loss_detection_calibration_and_report():
     cells = [c.strip() for c in line.strip("|").split("|")]
     flagged = sum(r["status"] != int(Status.OK) for r in rows[10000:])
     assert int(cells[3]) == flagged and all(0.0 <= float(c) <= 1.0 for c in cells[4:])
+
+
+def test_recovery_report_compares_the_modes():
+    """experiments/recovery.py's report without tracking: success rates per mode, their mean, the failure runs and the
+    recovery run's counts come from the rows it is given."""
+    rec = _load("recovery")
+
+    def rows(failed, status=None, searched=()):
+        out = []
+        for k, f in enumerate(failed):
+            s = (status or ["OK"] * len(failed))[k]
+            out.append({"failed": f, "status": s, "searched": k in searched, "recovered": s == "RECOVERED",
+                        "source": "keyframes" if k in searched else None, "total_s": 0.05,
+                        "recovery_s": 0.2 if k in searched else None})
+        return out
+
+    runs = {"a": {"no recovery": rows([False, True, True, True]),
+                  "recovery": rows([False, True, False, False], ["OK", "LOST", "RECOVERED", "OK"], searched=(1, 2)),
+                  "RBOT resets": rows([False, True, False, False])},
+            "b": {m: rows([False, False]) for m in rec.MODES}}
+    text = rec.report("cmd", 60.0, ((0.0,) * 3, (0.0,) * 3), runs)
+    row = next(t for t in text.splitlines() if t.startswith("| a |"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[2:6] == ["25 %", "75 %", "75 %", "+0"] and cells[6] == "3(end)" and cells[7] == "1"
+    mean = next(t for t in text.splitlines() if t.startswith("| **mean"))
+    assert "**62.5 %**" in mean and "**87.5 %**" in mean
+    assert "RECOVERED: 1, of which within the bound: 1; found by the keyframes' PnP: 1" in text
