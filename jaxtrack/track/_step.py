@@ -252,6 +252,8 @@ class TrackerParams(eqx.Module):
             confidence = 1 − σ(w₀ + w · evidence) where it applies (`TrackerConfig.calibrated_confidence`).
         uncertain_confidence, lost_confidence: a calibrated confidence below these is UNCERTAIN / LOST (0.5: the
             frame is more likely beyond 5 cm / 5° than not).
+        flow_structure: k of the flow's structure factor g = λ_min / (λ_min + k σ_n² + 1) on eq. 8's confidence
+            (`jaxtrack.cues.flow.structure_confidence`: the image must pin the flow); negative: off (the paper's c).
     """
 
     weights: CueWeights
@@ -274,6 +276,7 @@ class TrackerParams(eqx.Module):
     lines: LineParams = eqx.field(default_factory=line_params)
     line_learning_rate: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(0.2))
     loss_weights: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(LOSS_WEIGHTS))
+    flow_structure: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(-1.0))
     uncertain_confidence: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(0.5))
     lost_confidence: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(0.25))
 

@@ -65,6 +65,13 @@ _recover_pose_jit = eqx.filter_jit(recover_pose)
 
 # Factor on the Section V flow weights in the tracker's defaults (see `default_params`).
 TRACKER_FLOW_FACTOR = 0.1
+# k of the flow's structure factor on eq. 8's confidence (`TrackerParams.flow_structure`, negative: off; see
+# `jaxtrack.cues.flow.structure_confidence`). Measured off → 4 (experiments/results/flow_structure.md): the loss
+# experiment's sequences without resets 37.7 → 50.1 % within 5 cm / 5° (noisy S = 3: 9 → 91 %, occluded box
+# 10 → 49 %); frame rate with resets, noisy 97/94/91/50 → 100/94/91/88 %, occluded 51/18/9/12 → 60/24/18/25 %;
+# teabox-large-motion 64 → 91 %, turntable-teapot 55 → 73 %; tea box 0.62° → 0.45°. Worse: the real dragon
+# 49 → 40 % (k = 1: 45 %), the occluded-box preset 73 → 64 % (one frame of 11), the real cube 1.90° → 1.97°.
+FLOW_STRUCTURE = 4.0
 
 
 def _as_array(scales):
@@ -189,6 +196,7 @@ def default_params(
         loss_weights=jnp.asarray(LOSS_WEIGHTS, dtype),
         uncertain_confidence=jnp.asarray(0.5, dtype),
         lost_confidence=jnp.asarray(0.25, dtype),
+        flow_structure=jnp.asarray(FLOW_STRUCTURE, dtype),
     )
 
 

@@ -2,7 +2,8 @@
 
 A motion modality: its rows are made once per frame in `start` (the flow of the crop of frames t and
 t+1, restricted to the model silhouette at χ_t, with r(x) of frame t as the data weight) and enter both
-the prediction and every refinement round. Weight rule of Section V: w_i = c_i · n_ref / n_OF, where
+the prediction and every refinement round. Their confidence is eq. 8's times the structure factor of frame t's
+crop (`structure_confidence`, `TrackerParams.flow_structure`) where that is on. Weight rule of Section V: w_i = c_i · n_ref / n_OF, where
 n_ref is n_C in the refinement and n_OF in the prediction.
 """
 
@@ -18,6 +19,7 @@ from ...solve import Correspondences, Cue
 from ._api import FlowConfig
 from ._correspondences import flow_correspondences
 from ._solver import flow_core
+from ._structure import structure_confidence
 
 
 def _flatten_cameras(corr: Correspondences) -> Correspondences:
@@ -54,9 +56,13 @@ class OpticalFlow(Modality):
         flow = jax.vmap(lambda a, b, r, om: flow_core(a, b, params.flow, self.config, r, om, None, params.flow_beta, dtype))(
             ctx.previous_crops, ctx.crops, ctx.data_weight, sil)
         usable = sil & (ctx.data_weight > 0.5) & (flow.status == Status.OK)[:, None, None]
+        k = jnp.asarray(params.flow_structure, dtype)
+        pinned = jax.vmap(lambda im: structure_confidence(im.astype(dtype), jnp.maximum(k, 0.0)))(ctx.previous_crops)
+        confidence = flow.confidence * jnp.where(k < 0, 1.0, pinned)
+
         rows = jax.vmap(
             lambda cam, fl, conf, ok, pm, part, c: flow_correspondences(cam, fl, conf, ok, pm, part, None, self.stride, c)
-        )(ctx.crop_cameras, flow.flow, flow.confidence, usable, ren.p_model, ren.part_id,
+        )(ctx.crop_cameras, flow.flow, confidence, usable, ren.p_model, ren.part_id,
           jnp.arange(ctx.num_cameras, dtype=jnp.int32))
         return _flatten_cameras(rows)
 
