@@ -66,7 +66,7 @@ _recover_pose_jit = eqx.filter_jit(recover_pose)
 # Factor on the Section V flow weights in the tracker's defaults (see `default_params`).
 TRACKER_FLOW_FACTOR = 0.1
 # k of the flow's structure factor on eq. 8's confidence (`TrackerParams.flow_structure`, negative: off; see
-# `jaxtrack.cues.flow.structure_confidence`). Measured off → 4 (experiments/results/flow_structure.md): the loss
+# `jaxtrack.cues.flow.structure_confidence`). Measured off → 4 (README, "Flow where the image does not pin it"): the loss
 # experiment's sequences without resets 37.7 → 50.1 % within 5 cm / 5° (noisy S = 3: 9 → 91 %, occluded box
 # 10 → 49 %); frame rate with resets, noisy 97/94/91/50 → 100/94/91/88 %, occluded 51/18/9/12 → 60/24/18/25 %;
 # teabox-large-motion 64 → 91 %, turntable-teapot 55 → 73 %; tea box 0.62° → 0.45°. Worse: the real dragon

@@ -4,13 +4,13 @@ Eq. 8's confidence c = β / (1 + e) is high wherever the flow energy is low; on 
 flow fits the data, the smoothness term fills in the flow from the borders (zero on a flat object turning in
 place), and e is low there too: the flow rows then pin the surface where it was and outweigh the contour (the
 flat teapot on the turntable: 0.9° mean error with the lines alone, 98° with the lines and flow; measured in
-experiments/results/flow_structure.md). Lucas-Kanade's aperture measure says how far the image pins the flow at a
+experiments/results/cue_subsets.md). Lucas-Kanade's aperture measure says how far the image pins the flow at a
 pixel: the smaller eigenvalue λ_min of the structure tensor J_ρ = G_ρ ∗ (∇I ∇Iᵀ). The tracker multiplies eq. 8's
 confidence by
 
     g(x) = λ_min(x) / (λ_min(x) + κ),   κ = k · σ_n² + 1,
 
-1 on texture and corners, 0 on homogeneous regions and along straight edges (the aperture problem), with σ_n the
+near 1 on strong texture and corners, 0 on homogeneous regions and along straight edges (the aperture problem), with σ_n the
 image noise (Immerkær's estimate, from the Laplacian difference of the crop) so that noise alone does not count
 as texture: a pure noise image has λ_min ≈ σ_n²/2, g ≈ 1/(1 + 2k).
 """
