@@ -63,7 +63,7 @@ _MESSAGES = {
     Status.OUT_OF_VIEW: "the object is not visible in the image(s)",
     Status.UNCERTAIN: "tracked, but the evidence for the pose is weak",
     Status.LOST: "the evidence says the object was lost",
-    Status.RECOVERED: "the object was lost and found again by the hypothesis search (a new start from its pose)",
+    Status.RECOVERED: "the object was lost and found again (keyframes or pose hypotheses; a new start from its pose)",
 }
 _USABLE = np.array([s in (Status.OK, Status.MAX_STEPS, Status.RENDER_OVERFLOW, Status.UNCERTAIN, Status.RECOVERED)
                     for s in Status])

@@ -543,7 +543,7 @@ def _print_evaluation(ev, per_frame: bool = True) -> None:
         return
     status = np.array(ev.status)[use]
     lost = np.isin(status, ["LOST", "OUT_OF_VIEW", "NONFINITE"])
-    flagged = status != "OK"
+    flagged = ~np.isin(status, ["OK", "RECOVERED"])  # RECOVERED: lost, then found (a usable pose)
     print()
     print("| status predicts failure (beyond 5 cm / 5°) | frames flagged | precision | recall |\n|---|---:|---:|---:|")
     for name, pred in (("lost", lost), ("lost or uncertain", flagged)):

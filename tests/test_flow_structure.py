@@ -24,7 +24,7 @@ def test_noise_estimate_recovers_gaussian_noise():
 
 def test_texture_pins_the_flow_and_flat_regions_edges_and_noise_do_not():
     """g high on texture; 0 on a flat image; ≈ 0 along a straight edge (the aperture problem: one direction only);
-    on noise alone ≈ 1 / (1 + 2k) (λ_min ≈ σ²/2 against k σ² + 1); and it falls as k grows."""
+    on noise alone ≈ 0.65 / (0.65 + k) (λ_min ≈ 0.65 σ² against k σ² + 1); and it falls as k grows."""
     rng = np.random.default_rng(1)
     texture = _texture(rng)
     g_texture = np.asarray(structure_confidence(jnp.asarray(texture), 4.0))
@@ -36,7 +36,7 @@ def test_texture_pins_the_flow_and_flat_regions_edges_and_noise_do_not():
     k = 4.0
     noise = 120.0 + rng.normal(0.0, 30.0, (96, 128))
     g_noise = float(np.median(np.asarray(structure_confidence(jnp.asarray(noise), k))))
-    assert 0.5 / (1 + 2 * k) < g_noise < 2.0 / (1 + 2 * k), g_noise
+    assert 0.5 * 0.65 / (0.65 + k) < g_noise < 2.0 * 0.65 / (0.65 + k), g_noise
     g = [float(np.mean(np.asarray(structure_confidence(jnp.asarray(texture + rng.normal(0, 10, texture.shape)), kk))))
          for kk in (0.0, 1.0, 4.0, 16.0)]
     assert np.all(np.diff(g) < 0), g

@@ -427,6 +427,7 @@ def test_the_recovery_program_is_compiled_before_a_frame_is_lost(sequence, lines
 
     tracker, state, _ = lines_sift
     saved = dict(vars(tracker))
+    saved_keyframes = None if tracker.keyframes is None else (list(tracker.keyframes.keyframes), list(tracker.keyframes.tried))
     try:
         tracker.warm_up_recovery, tracker._recovery_warmup = True, None
         first = eqx.debug.get_num_traces(recover_pose)
@@ -442,12 +443,14 @@ def test_the_recovery_program_is_compiled_before_a_frame_is_lost(sequence, lines
     finally:
         vars(tracker).clear()
         vars(tracker).update(saved)
+        if saved_keyframes is not None:  # the shared keyframe model, as it was
+            tracker.keyframes.keyframes, tracker.keyframes.tried = saved_keyframes
 
 
 @pytest.mark.xdist_group("lines_sift")
 def test_hypothesis_scores_under_vmap_equal_one_at_a_time(sequence, lines_sift):
     """Issue 24: the recovery scores every hypothesis in one vmapped call; each score equals the same pose scored
-    alone, and the search's own scores are those (2 references and 253 rotations each)."""
+    alone, and the search's own scores are those (2 references and 232 rotations each)."""
     from jaxtrack.track._recovery import RecoveryConfig, hypothesis_poses, rig_agreement
 
     tracker, state, _ = lines_sift
@@ -460,7 +463,7 @@ def test_hypothesis_scores_under_vmap_equal_one_at_a_time(sequence, lines_sift):
     hyps = hypothesis_poses(refs, config.rotation_offsets(), view_model.center)
     assert hyps.shape == (2 * len(config.rotation_offsets()), 4, 4)
     assert np.allclose(hyps[0], refs[0]) and np.allclose(hyps[len(config.rotation_offsets())], refs[1])
-    pick = np.array([0, 5, 77, 300, 505])
+    pick = np.array([0, 5, 77, 300, 463])
     score = jax.jit(lambda T: rig_agreement(tracker.cameras, T, view_model, frames, hist, lines, config.score_scale))
     batched = np.asarray(jax.jit(jax.vmap(score))(hyps[pick]))
     alone = np.array([float(score(hyps[k])) for k in pick])
@@ -474,7 +477,7 @@ def test_hypothesis_scores_under_vmap_equal_one_at_a_time(sequence, lines_sift):
 @pytest.mark.xdist_group("lines_sift")
 def test_an_injected_jump_is_lost_then_recovered(lines_sift):
     """Issue 24: the pose teleported 40° is LOST in its frame; the search (the first frame's SIFT keyframe, PnP) finds
-    the pose, the frame is RECOVERED within three frames, within 5°, and the next frame tracks on (OK). The box is
+    the pose, and the frame of the jump is RECOVERED within 5°; the next frame tracks on from it (OK). The box is
     nearer than in `sequence` (400 mm): at 600 mm its 22 keypoints left 6 matches, too few for PnP (12 inliers)."""
     from jaxtrack.synth import SynthConfig, render_sequence
 
@@ -499,8 +502,7 @@ def test_an_injected_jump_is_lost_then_recovered(lines_sift):
         vars(tracker).clear()
         vars(tracker).update(saved)
     print("statuses", statuses, "errors", np.round(errors, 1), "searches", searched)
-    assert searched[0] is not None  # the step said LOST in the frame of the jump
-    assert "RECOVERED" in statuses, statuses
-    first = statuses.index("RECOVERED")
-    assert max(errors[first:]) < 5.0, errors
-    assert all(s in ("OK", "RECOVERED") for s in statuses[first:]), statuses
+    assert searched[0] is not None and searched[0]["source"] == "keyframes"  # LOST, then found by the keyframe's PnP
+    assert searched[0]["pnp_inliers"] >= 12, searched
+    assert statuses == ["RECOVERED", "OK"], statuses
+    assert max(errors) < 5.0, errors

@@ -92,19 +92,24 @@ class KeyframeModel:
         self.sift = dataclasses.replace(SiftConfig() if sift is None else sift, max_side=0)
         self.intersector = RayMeshIntersector(trimesh.Trimesh(np.asarray(vertices, np.float64), np.asarray(faces), process=False))
         self.keyframes: list[Keyframe] = []
+        self.tried: list[np.ndarray] = []  # rotations of every keyframe attempt (kept or not: no keypoints there)
 
     def __len__(self) -> int:
         return len(self.keyframes)
 
     def wants(self, T_world_root) -> bool:
-        """Whether a frame at this pose (reported OK) would be a new keyframe (its rotation is new)."""
+        """Whether a frame at this pose (reported OK) would be a new keyframe: its rotation is new (also against
+        attempts that found no keypoints), and there is room or a keyframe other than the first to replace."""
+        if self.config.max_keyframes == 1 and self.keyframes:
+            return False
         R = np.asarray(T_world_root, np.float64)[:3, :3]
-        return all(_rotation_deg(R, k.R_world_root) > self.config.min_angle_deg for k in self.keyframes)
+        return all(_rotation_deg(R, Rk) > self.config.min_angle_deg for Rk in self.tried)
 
     def add(self, images, masks, K, dist, T_cam_world, T_world_root) -> int:
         """Take a keyframe from (C, H, W, 3) images at a trusted pose; `masks` (C, H, W) the visible object pixels,
         K (C, 3, 3), dist (C, 5), T_cam_world (C, 4, 4). Returns the keypoints kept (on the mesh)."""
         T = np.asarray(T_world_root, np.float64)
+        self.tried.append(T[:3, :3].copy())
         desc, pts = [], []
         for c in range(len(images)):
             xy, d = detect_sift(images[c], masks[c], self.sift)
@@ -133,17 +138,21 @@ class KeyframeModel:
 
         if not self.keyframes:
             return None
-        desc_k = np.concatenate([k.descriptors for k in self.keyframes])
-        pts_k = np.concatenate([k.points_model for k in self.keyframes])
         best = None
         for c in range(len(images)):
             xy, d = detect_sift(images[c], regions[c], self.sift)
-            ia, ib, _ = match_descriptors(desc_k, d, self.config.ratio)
-            if len(ia) < self.config.min_inliers:
+            # Each keyframe matched on its own: keyframes share features, and one call over all of them would drop
+            # every frame keypoint that two of them match (`match_descriptors` deletes conflicts).
+            obj, img = [], []
+            for k in self.keyframes:
+                ia, ib, _ = match_descriptors(k.descriptors, d, self.config.ratio)
+                obj.append(k.points_model[ia])
+                img.append(xy[ib])
+            obj, img = np.concatenate(obj).astype(np.float64), np.concatenate(img).astype(np.float64)
+            if len(obj) < self.config.min_inliers:
                 continue
             h, w = images[c].shape[:2]
             bound = self.config.reprojection_px * float(np.hypot(h, w)) / 1000.0
-            obj, img = pts_k[ia].astype(np.float64), xy[ib].astype(np.float64)
             Kc, dc = np.asarray(K[c], np.float64), np.asarray(dist[c], np.float64)
             with opencv_threads(1):
                 ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, Kc, dc, iterationsCount=self.config.iterations,
@@ -158,7 +167,7 @@ class KeyframeModel:
             T_cam_model = np.eye(4)
             T_cam_model[:3, :3] = cv2.Rodrigues(rvec)[0]
             T_cam_model[:3, 3] = tvec[:, 0]
-            found = PnPResult(np.linalg.inv(np.asarray(T_cam_world[c], np.float64)) @ T_cam_model, len(inl), len(ia), c)
+            found = PnPResult(np.linalg.inv(np.asarray(T_cam_world[c], np.float64)) @ T_cam_model, len(inl), len(obj), c)
             if best is None or found.inliers > best.inliers:
                 best = found
         return best

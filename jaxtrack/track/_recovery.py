@@ -5,7 +5,7 @@ tracker tries the keyframes' PnP re-detection first, `_keyframes.py`, where `Rec
 Hypotheses (K = R · Q, static): the R reference poses (the lost frame's result, which usually keeps the
 silhouette, and the last pose reported OK) each turned about the model's centre by Q rotations that
 cover SO(3) around it: the identity, and `angles_deg` about each of the icosphere's axes
-(`axis_subdivisions` 1: 42 axes; 6 angles: Q = 253).
+(`axis_subdivisions` 1: 42 axes, 21 of them for 180°; 6 angles: Q = 232).
 
 Score of a pose (the region energy of eq. 11 in the limit of a hard shape prior, read on the lines): each
 line of the sparse viewpoint model's nearest view is read at `score_scale` px per segment; the segments on
@@ -15,8 +15,8 @@ lines, an invalid line (off the image, too short) counting ½ (no evidence): 1 w
 for a pose the colours cannot tell from any other. The refined candidates are compared at the finest
 scale of the lines' schedule (`final_scale`).
 
-One compiled program per tracker (rig, mesh, view model and these static settings); `Tracker` compiles it at
-start when recovery is on, so no frame waits for it.
+One compiled program per tracker (rig, mesh, view model and these static settings); `Tracker` compiles it in a
+background thread after the first step when recovery is on (`Tracker.warm_up_recovery`), so no frame waits for it.
 """
 
 from __future__ import annotations
@@ -72,7 +72,10 @@ class RecoveryConfig(eqx.Module):
         """(Q, 3) rotation vectors (rad) of the hypotheses about a reference: 0, then every angle about every axis."""
         axes, _ = icosphere(self.axis_subdivisions)
         axes = axes / np.linalg.norm(axes, axis=1, keepdims=True)
-        turned = [axes * np.radians(a) for a in self.angles_deg]
+        # 180° about a and about −a are one rotation: one hemisphere of axes for it (the icosphere's come in ± pairs)
+        first = axes[np.arange(len(axes)), np.argmax(np.abs(axes) > 1e-9, axis=1)]
+        half = axes[first > 0]
+        turned = [(half if a >= 180.0 else axes) * np.radians(a) for a in self.angles_deg]
         return np.concatenate([np.zeros((1, 3))] + turned, axis=0)
 
 
@@ -195,13 +198,13 @@ def recover_pose(cameras: Camera, frames, view_model: SparseViewModel, histogram
     hyps = hypothesis_poses(jnp.asarray(references, dtype), offsets, view_model.center)
     score = lambda T, s: rig_agreement(cameras, T, view_model, frames, histograms, params, s, line_config)
     scores = jax.vmap(lambda T: score(T, config.score_scale))(hyps)
-    ranked = scores.at[0].set(jnp.inf)  # the lost frame's own pose is always refined (recovery must beat it)
+    ranked = jnp.nan_to_num(scores, nan=-jnp.inf).at[0].set(jnp.inf)  # the lost frame's own pose is always refined (recovery must beat it)
     _, top = jax.lax.top_k(ranked, min(config.refine, hyps.shape[0]))
     refined, status = jax.vmap(lambda T: refine_on_lines(cameras, T, view_model, frames, histograms, params,
                                                          jnp.asarray(scales, jnp.int32),
                                                          jnp.asarray(standard_deviations, dtype), num_rounds,
                                                          line_config))(hyps[top])
-    final = jax.vmap(lambda T: score(T, config.final_scale))(refined)
+    final = jnp.nan_to_num(jax.vmap(lambda T: score(T, config.final_scale))(refined), nan=-jnp.inf)
     best = jnp.argmax(final)
     return RecoveryResult(T_world_root=refined[best], score=final[best], own_score=final[0], index=top[best].astype(jnp.int32),
                           scores=scores, status=status[best].astype(jnp.int32))

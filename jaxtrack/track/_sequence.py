@@ -291,6 +291,7 @@ def track_sequence(
             bar.set_postfix(status=status[-1], conf=f"{conf[-1]:.2f}")
     if bar is not None:
         bar.close()
+    tracker.join_background()  # a background compile must not outlive the run (the process may exit next)
     return TrackingRun(
         frame_ids=list(view0.frame_ids[:n]), obj_id=int(obj_id), T_world_root=np.stack(poses), theta=np.stack(thetas),
         T_cam_world=T_cam_world, camera_ids=views,

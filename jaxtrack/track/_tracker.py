@@ -516,7 +516,7 @@ class Tracker:
 
         Returns:
             (state at t+1, `FrameResult`, info: host timings in seconds, the crop, and "recovery": None, or what the
-            search after a LOST frame found (scores, hypothesis, "recovered")).
+            search after a LOST frame found ("source", "pnp_inliers", "score", "own_score", "hypothesis", "recovered")).
 
         Raises:
             ValueError: malformed frames.
@@ -532,7 +532,8 @@ class Tracker:
         if offsets is None:  # behind a camera or outside every image: keep the pose, report it out of view
             lost = eqx.tree_at(lambda s: s.images, state, jnp.asarray(self._frames_as_state(frames)))
             timings["total_s"] = time.perf_counter() - start
-            return lost, self._out_of_view(state), {"timings": timings, "offsets": None, "crop_shape": None, "scales": None}
+            return lost, self._out_of_view(state), {"timings": timings, "offsets": None, "crop_shape": None, "scales": None,
+                                                    "recovery": None}
         host = self.host_inputs(state, frames, timings)
         params = self.params_for(crop_shape) if params is None else params
         frames_j = jnp.asarray(self._frames_as_state(frames))
@@ -632,13 +633,29 @@ class Tracker:
         `RecoveryResult` (its `T_world_root` is the best refined pose)."""
         if self.recovery_modality() is None:
             raise ValueError("recover: this tracker has no recovery (needs TrackerConfig.recovers() and a rigid object)")
+        if self._recovery_warmup is not None:  # its compile, not a second one
+            self._recovery_warmup.join()
         frames_j = jnp.asarray(self._frames_as_state(self.check_frames(frames, "frames")))
         params = self.params_for(self.crop_shape) if params is None else params
         reference = state.T_world_root if reference is None else jnp.asarray(reference, self.dtype)
         good = state.T_world_root if self.last_good_pose is None else self.last_good_pose
         return _recover_pose_jit(*self._recovery_args(state, frames_j, jnp.stack([reference, good]), params))
 
+    def join_background(self) -> None:
+        """Wait for the background compile of the recovery program (call before the process exits)."""
+        if self._recovery_warmup is not None:
+            self._recovery_warmup.join()
+
     def _recover(self, state: TrackerState, lost_state: TrackerState, lost: FrameResult, frames, frames_j, params):
+        """`_search` with failures as values: an exception in the search (OpenCV, a compile) leaves the frame LOST."""
+        try:
+            return self._search(state, lost_state, lost, frames, frames_j, params)
+        except Exception as error:  # noqa: BLE001  (inside the tracking loop a failure is a status, never a raise)
+            frozen = eqx.tree_at(lambda s: (s.appearance, s.modalities), lost_state, (state.appearance, state.modalities))
+            return frozen, lost, {"recovered": False, "source": None, "error": repr(error),
+                                  "windows": self.windows(lost.T_world_root, lost.theta)}
+
+    def _search(self, state: TrackerState, lost_state: TrackerState, lost: FrameResult, frames, frames_j, params):
         """After a LOST frame: search for the pose (`recover`), then the normal step again on frames t+1 → t+1 from
         what it found (no motion: the prediction is the found pose). Its status OK makes the frame RECOVERED and
         its state the next one; otherwise the frame stays LOST, and the colour histograms and the appearance model
@@ -668,8 +685,11 @@ class Tracker:
         return self._restart(state, frozen, lost, frames, frames_j, params, found.T_world_root, info)
 
     def _restart(self, state, frozen, lost, frames, frames_j, params, T_found, info):
-        """The normal step on frames t+1 → t+1 from a found pose: (state, result) RECOVERED when it is OK, else
-        (`frozen`, `lost`); `info` gets "windows", "confidence", "recovered"."""
+        """The normal step on frames t+1 → t+1 from a found pose: (state, result) RECOVERED when it is OK and explains
+        the frame better than the lost pose did, else (`frozen`, `lost`); `info` gets "windows", "confidence",
+        "recovered". Between a frame and itself the motion cues see no motion, so the restart's motion evidence and
+        jump are empty (they read as agreement): the found pose must also beat the lost one on the evidence that
+        does not depend on motion, the contour, the occluded fraction and the appearance distance."""
         theta = lost.theta
         boxes = projected_boxes(self.mesh, self.cameras, T_found, theta, self.model)
         H, W = self.cameras.height, self.cameras.width
@@ -684,11 +704,12 @@ class Tracker:
         restart = eqx.tree_at(lambda s: (s.T_world_root, s.images, s.data_weight, s.visible), state,
                               (T_found, frames_j, jnp.ones_like(state.data_weight), jnp.asarray(visible)))
         host = self.host_inputs(restart, frames)
-        params_r = self.params_for(crop_shape) if self.user_params is None else params
-        new_state, result = self._run_step(restart, frames_j, host, offsets, params_r, crop_shape, scales)
+        new_state, result = self._run_step(restart, frames_j, host, offsets, params, crop_shape, scales)
         info["windows"] = (offsets, crop_shape, scales)
         info["confidence"] = float(result.confidence)
-        if int(result.status) != Status.OK:
+        found_ev, lost_ev = np.asarray(result.loss_evidence), np.asarray(lost.loss_evidence)
+        static = [LOSS_EVIDENCE.index(n) for n in ("contour", "occluded", "appearance")]
+        if int(result.status) != Status.OK or np.any(found_ev[static] > lost_ev[static]):
             return frozen, lost, info
         info["recovered"] = True
         self.recoveries += 1

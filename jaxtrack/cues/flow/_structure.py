@@ -12,7 +12,7 @@ confidence by
 
 near 1 on strong texture and corners, 0 on homogeneous regions and along straight edges (the aperture problem), with σ_n the
 image noise (Immerkær's estimate, from the Laplacian difference of the crop) so that noise alone does not count
-as texture: a pure noise image has λ_min ≈ σ_n²/2, g ≈ 1/(1 + 2k).
+as texture: a pure noise image has λ_min ≈ 0.65 σ_n² (the 5-point derivative stencil), g ≈ 0.65 / (0.65 + k).
 """
 
 from __future__ import annotations
