@@ -5,8 +5,8 @@ sequences at S = 2..4, the occluded-box preset, the teapot turntable; none of th
 calibration) are tracked three ways from the first true pose, camera 0, the tracker's defaults otherwise:
 
 - `no recovery`: the defaults (`TrackerConfig.recovery` None); a lost frame is reported and tracking goes on from its pose;
-- `recovery`: `TrackerConfig(recovery=RecoveryConfig())`: after a LOST frame the hypothesis search and the normal step
-  again (RECOVERED when that step is OK);
+- `recovery`: `TrackerConfig(recovery=RecoveryConfig(hypotheses=...))`: after a LOST frame the keyframes' PnP (and
+  with `--hypotheses` the pose hypotheses), then the normal step again (RECOVERED when that step is OK);
 - `RBOT resets`: no recovery; a frame beyond 5 cm / 5° is counted failed and the tracker restarts from the
   truth (the oracle of the RBOT protocol).
 
@@ -39,7 +39,7 @@ RESULTS = pathlib.Path(__file__).resolve().parent / "results"
 MODES = ("no recovery", "recovery", "RBOT resets")
 
 
-def track(seq, mode: str) -> list[dict]:
+def track(seq, mode: str, hypotheses: bool = False) -> list[dict]:
     """Track camera 0 of `seq` in one of `MODES`; one row per frame 1.. (errors against the truth, status, timings)."""
     from jaxtrack import Status
     from jaxtrack.geometry import make_camera, rotation_error_deg, stack_cameras
@@ -50,7 +50,7 @@ def track(seq, mode: str) -> list[dict]:
     rig = stack_cameras([make_camera(view.K, view.width, view.height, view.T_cam_world[:3, :3], view.T_cam_world[:3, 3])])
     oid = min(seq.model_paths)
     T_world = np.einsum("ij,fjk->fik", np.linalg.inv(np.asarray(view.T_cam_world, np.float64)), view.T_cam_obj[oid])
-    config = TrackerConfig(recovery=RecoveryConfig() if mode == "recovery" else None)
+    config = TrackerConfig(recovery=RecoveryConfig(hypotheses=hypotheses) if mode == "recovery" else None)
     tracker = Tracker(load_mesh(seq.model_paths[oid]), rig, config=config)
     state = tracker.start(view.read_frame(0)[None], T_world[0])
     rows = []
@@ -135,6 +135,7 @@ def main(argv=None):
     ap.add_argument("--scale", type=float, default=0.5, help="image scale (1 = 640x480)")
     ap.add_argument("--frames", type=int, default=36, help="frames of the frame-rate sequences at S = 1")
     ap.add_argument("--quick", action="store_true", help="smoke run: one short sequence")
+    ap.add_argument("--hypotheses", action="store_true", help="the recovery also searches the pose hypotheses")
     ap.add_argument("--only", default=None, help="comma-separated substrings: track only the sequences they name")
     ap.add_argument("--seq-dir", default=None, help="keep the rendered sequences here (and reuse them)")
     ap.add_argument("--out", default=str(RESULTS / "recovery.md"))
@@ -155,7 +156,7 @@ def main(argv=None):
             if args.only and not any(s in name for s in args.only.split(",")):
                 continue
             seq = read_sequence(tp.write_preset(f"eval{i}", cfg, seq_dir))
-            runs[name] = {m: track(seq, m) for m in MODES}
+            runs[name] = {m: track(seq, m, args.hypotheses) for m in MODES}
             print(f"[recovery] {name}: " + ", ".join(f"{m} {_rate(runs[name][m]):.0f} %" for m in MODES)
                   + f" ({(time.perf_counter() - started) / 60:.1f} min)", file=sys.stderr, flush=True)
     finally:

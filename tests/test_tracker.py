@@ -368,7 +368,7 @@ def lines_sift(sequence):
     worker of group "lines_sift"): its confidence is the calibrated one (`TrackerConfig.calibrated_confidence`)."""
     from jaxtrack.track import RecoveryConfig
 
-    config = TrackerConfig(cues=("lines", "sift"), working_shape=(96, 128), recovery=RecoveryConfig())
+    config = TrackerConfig(cues=("lines", "sift"), working_shape=(96, 128), recovery=RecoveryConfig(hypotheses=True))
     tracker = Tracker(sequence["mesh"], sequence["camera"], config=config)
     state = tracker.start(sequence["images"][0], sequence["T"][0])
     state, result, _ = tracker.step(state, sequence["images"][1])

@@ -46,7 +46,10 @@ class RecoveryConfig(eqx.Module):
         score_scale: px per segment of the hypotheses' score (coarse: the lines reach 19 · scale px).
         final_scale: px per segment of the refined candidates' score.
         keyframes: re-detection first (`jaxtrack.track._keyframes`: SIFT keyframes with model points, PnP + RANSAC),
-            or None: the region search alone.
+            or None: the hypotheses alone.
+        hypotheses: when the keyframes find nothing, search the pose hypotheses scored on the lines. Off by default:
+            on the loss experiment's sequences every pose it found (17 in three runs) was 70-174° off
+            (experiments/results/recovery.md).
         margin: a found pose is taken only when its score beats the lost frame's own refined pose by this much
             (the score cannot tell a symmetric object's turned poses apart: a 180° flip of a box scores within
             0.01 of the right pose; measured in experiments/results/recovery.md).
@@ -59,6 +62,7 @@ class RecoveryConfig(eqx.Module):
     final_scale: int = eqx.field(static=True, default=2)
     margin: float = eqx.field(static=True, default=0.02)
     keyframes: KeyframeConfig | None = eqx.field(static=True, default_factory=KeyframeConfig)
+    hypotheses: bool = eqx.field(static=True, default=False)
 
     def __check_init__(self):
         if not 0 <= self.axis_subdivisions <= 3:

@@ -552,7 +552,8 @@ class Tracker:
                 key_start = time.perf_counter()
                 self._add_keyframe(frames, np.asarray(new_state.visible), result.T_world_root)
                 timings["keyframe_s"] = time.perf_counter() - key_start
-        if self.warm_up_recovery and self._recovery_warmup is None and self.recovery_modality() is not None:
+        if (self.warm_up_recovery and self._recovery_warmup is None and self.recovery_modality() is not None
+                and self.config.recovery.hypotheses):
             self._warm_up_recovery(new_state, frames_j, params)
         timings["total_s"] = time.perf_counter() - start
         moved = projected_boxes(self.mesh, self.cameras, result.T_world_root, result.theta, self.model)
@@ -674,8 +675,9 @@ class Tracker:
                 out = self._restart(state, frozen, lost, frames, frames_j, params, jnp.asarray(pnp.T_world_root, self.dtype), info)
                 if info["recovered"]:
                     return out
-        if self._recovery_warmup is not None:
-            self._recovery_warmup.join()
+        if not self.config.recovery.hypotheses:
+            info["windows"] = self.windows(lost.T_world_root, theta)
+            return frozen, lost, info
         found = self.recover(state, frames, lost.T_world_root, params)
         info.update({"score": float(found.score), "own_score": float(found.own_score), "hypothesis": int(found.index),
                      "T_found": np.asarray(found.T_world_root), "source": "region"})
