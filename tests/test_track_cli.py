@@ -70,6 +70,9 @@ class _FakeTracker:
         info = {"timings": {"step_s": 0.001}, "offsets": np.tile([[20, 30]], (self.num_cameras, 1)), "crop_shape": (40, 50)}
         return types.SimpleNamespace(T_world_root=T, theta=np.zeros(0)), result, info
 
+    def join_background(self):
+        """`Tracker.join_background`: this stand-in compiles nothing in the background."""
+
 
 def _world_truth(seq_dir):
     view = read_sequence(seq_dir).views[0]
