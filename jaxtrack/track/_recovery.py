@@ -28,8 +28,15 @@ import numpy as np
 
 from .._status import Status, is_usable
 from ..cues.lines import ColourHistograms, LineConfig, LineParams, SparseViewModel, line_rows
-from ..cues.lines._histograms import colour_index, log_odds_of_cells
-from ..cues.lines._lines import DEFAULT_LINE_CONFIG, M3T_SOLVER, _scale, project_contour, sample_lines, schedule
+from ..cues.lines._lines import (
+    DEFAULT_LINE_CONFIG,
+    M3T_SOLVER,
+    _scale,
+    project_contour,
+    sample_lines,
+    schedule,
+    segment_log_odds,
+)
 from ..cues.lines._viewmodel import icosphere, points_for_pose
 from ..geometry import Camera, rigid_model, so3_exp
 from ..solve import solve_pose
@@ -118,12 +125,8 @@ def line_agreement(camera: Camera, T_world_root, view_model: SparseViewModel, im
     proj = project_contour(camera, T, points)
     scale = _scale(scale, config)
     samples = sample_lines(image, proj.center, proj.normal, scale, config)
-    cells = colour_index(samples.colour, histograms.bins)
-    lo = jnp.where(samples.mask, log_odds_of_cells(histograms, cells, params.posterior_prior), 0.0)
+    seg_lo = segment_log_odds(histograms, samples, scale, config, params.posterior_prior)  # (N, S) inside → outside
     S = config.num_segments
-    seg = jnp.arange(config.max_pixels) // scale
-    onehot = (seg[:, None] == jnp.arange(S)[None, :]).astype(lo.dtype)
-    seg_lo = lo @ onehot  # (N, S) inside → outside
     half = (S - 1) / 2  # the middle segment straddles the contour: left out
     index = jnp.arange(S)
     side = jnp.where(index < half, 1.0, jnp.where(index > half, -1.0, 0.0)).astype(dtype)
