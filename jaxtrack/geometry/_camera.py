@@ -177,7 +177,12 @@ def undistort_points(camera: Camera, px: jax.Array, iterations: int = 20):
         radial, shift = _distortion_terms(xy, dist)
         return (xy_d - shift) / radial
 
-    return normalized_to_pixels(camera, jax.lax.fori_loop(0, iterations, step, xy_d))
+    # A camera without distortion runs one step instead of the loop (a lax.cond at run time; under vmap
+    # with per-element cameras it becomes a select and both sides run). At zero distortion that step
+    # gives the fixed point exactly and its first derivatives too (the terms' xy-derivatives vanish
+    # there), so gradients with respect to the distortion stay those of the loop.
+    xy = jax.lax.cond(jnp.any(dist != 0), lambda: jax.lax.fori_loop(0, iterations, step, xy_d), lambda: step(0, xy_d))
+    return normalized_to_pixels(camera, xy)
 
 
 def backproject_pixels(camera: Camera, px: jax.Array, depth: jax.Array):

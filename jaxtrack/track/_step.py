@@ -24,6 +24,8 @@ plan, the crop size class) is static.
 from __future__ import annotations
 
 import dataclasses
+import functools
+import os
 
 import equinox as eqx
 import jax
@@ -76,6 +78,14 @@ LOSS_WEIGHTS = (-2.995, 2.561, 3.858, 22.900, 11.744, 2.026)
 # had 3 levels, one fewer than the native crops it replaced, and the prediction did not reach a 20 px / 12° frame
 # step (frame_rate S = 4: 38 % success, 100 % with 8; tests/test_tracker.py shows the cut-off reach).
 WORKING_FLOW_MIN_SIZE = 8
+
+
+@functools.lru_cache(maxsize=64)
+def _configured_modalities(config: TrackerConfig, view_subdivisions_env: str | None) -> tuple[Modality, ...]:
+    del view_subdivisions_env  # part of the cache key only
+    region = "lines" if config.region_modality == "auto" else config.region_modality
+    return tuple(c if isinstance(c, Modality) else modality_class(region if c == "region" else c).from_config(config)
+                 for c in config.cues)
 
 
 class TrackerConfig(eqx.Module):
@@ -172,15 +182,15 @@ class TrackerConfig(eqx.Module):
         return out
 
     def modalities(self) -> tuple[Modality, ...]:
-        """The configured `Modality` instances, in the order of `cues` ("auto" counts as rigid: "lines")."""
-        region = "lines" if self.region_modality == "auto" else self.region_modality
-        out = []
-        for c in self.cues:
-            if isinstance(c, Modality):
-                out.append(c)
-            else:
-                out.append(modality_class(region if c == "region" else c).from_config(self))
-        return tuple(out)
+        """The configured `Modality` instances, in the order of `cues` ("auto" counts as rigid: "lines").
+
+        Built once per configuration (and `$JAXTRACK_VIEW_SUBDIVISIONS`, which `LineRegion.from_config` reads):
+        the tracker asks several times per frame."""
+        env = os.environ.get("JAXTRACK_VIEW_SUBDIVISIONS")
+        try:
+            return _configured_modalities(self, env)
+        except TypeError:  # a user's Modality instance that cannot be hashed: built each time
+            return _configured_modalities.__wrapped__(self, env)
 
     def loop_settings(self) -> tuple[int, int, int]:
         """(rounds, Gauss-Newton steps per round, minimum rounds) of the refinement: the largest of the

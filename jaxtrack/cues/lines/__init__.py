@@ -12,11 +12,13 @@ See ../shared/DESIGN.md, "The region energy on correspondence lines".
 """
 
 from ._histograms import ColourHistograms as ColourHistograms
+from ._histograms import LogOddsTable as LogOddsTable
 from ._histograms import colour_index as colour_index
 from ._histograms import histogram_from_colours as histogram_from_colours
 from ._histograms import image_colours as image_colours
 from ._histograms import learn_histograms as learn_histograms
 from ._histograms import log_odds_of_cells as log_odds_of_cells
+from ._histograms import log_odds_table as log_odds_table
 from ._histograms import pixel_posteriors as pixel_posteriors
 from ._histograms import posterior_image as posterior_image
 from ._histograms import posterior_of_cells as posterior_of_cells

@@ -129,8 +129,37 @@ def posterior_of_cells(hist: ColourHistograms, cells, prior=1e-7):
     return hf / (hf + hb)
 
 
-def log_odds_of_cells(hist: ColourHistograms, cells, prior=1e-7):
-    """log(p_f / p_b) at histogram cells (...,) int32: log(h_f + ε) − log(h_b + ε), finite for ε > 0."""
+class LogOddsTable(eqx.Module):
+    """log(h_f + ε) − log(h_b + ε) of every cell, computed once where the histograms stay fixed (a frame's
+    refinement rounds), so that reading a line's pixels is one gather instead of two gathers and two logs
+    per pixel (M3T likewise keeps a posterior table per cell).
+
+    Attributes:
+        values: (B³,) log odds per cell; prior: the ε it was computed with (a scalar array).
+    """
+
+    values: jax.Array
+    prior: jax.Array
+
+    @property
+    def bins(self) -> int:
+        """B, the bins per channel (static: from the shape)."""
+        return round(self.values.shape[-1] ** (1.0 / 3.0))
+
+
+def log_odds_table(hist: ColourHistograms, prior=1e-7) -> LogOddsTable:
+    """The `LogOddsTable` of `hist` with the additive prior ε (scalar array)."""
+    eps = jnp.asarray(prior, hist.fg.dtype)
+    return LogOddsTable(jnp.log(hist.fg + eps) - jnp.log(hist.bg + eps), eps)
+
+
+def log_odds_of_cells(hist: ColourHistograms | LogOddsTable, cells, prior=1e-7):
+    """log(p_f / p_b) at histogram cells (...,) int32: log(h_f + ε) − log(h_b + ε), finite for ε > 0.
+
+    A `LogOddsTable` is read as it is (its own ε; `prior` is not used).
+    """
+    if isinstance(hist, LogOddsTable):
+        return hist.values[cells]
     eps = jnp.asarray(prior, hist.fg.dtype)
     return jnp.log(hist.fg[cells] + eps) - jnp.log(hist.bg[cells] + eps)
 

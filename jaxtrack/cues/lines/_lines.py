@@ -42,7 +42,7 @@ import numpy as np
 
 from ...geometry import Camera, KinematicModel, part_transforms, project_points, rigid_model, transform_points
 from ...solve import Correspondences, Cue, SolverConfig, correspondences_from_pixels, solve_pose
-from ._histograms import ColourHistograms, colour_index, learn_histograms, log_odds_of_cells
+from ._histograms import ColourHistograms, LogOddsTable, colour_index, learn_histograms, log_odds_of_cells
 from ._viewmodel import ContourPoints, SparseViewModel, points_for_pose
 
 
@@ -271,8 +271,10 @@ def sample_lines(image, center, normal, scale, config: LineConfig = DEFAULT_LINE
 # ------------------------------------------------------------------------------------- distributions
 
 
-def segment_log_odds(histograms: ColourHistograms, samples: LineSamples, scale, config: LineConfig, prior=1e-7):
-    """(N, S) log(P_f / P_b) of each segment: the sum of its pixels' log(h_f / h_b) (S = num_segments)."""
+def segment_log_odds(histograms: ColourHistograms | LogOddsTable, samples: LineSamples, scale, config: LineConfig, prior=1e-7):
+    """(N, S) log(P_f / P_b) of each segment: the sum of its pixels' log(h_f / h_b) (S = num_segments).
+
+    `histograms` may be a `LogOddsTable` (then `prior` is the table's own)."""
     cells = colour_index(samples.colour, histograms.bins)
     lo = jnp.where(samples.mask, log_odds_of_cells(histograms, cells, prior), 0.0)
     k = jnp.arange(config.max_pixels)
@@ -345,7 +347,7 @@ def measure_lines(
     T_world_root,
     points: SparseViewModel | ContourPoints,
     image,
-    histograms: ColourHistograms,
+    histograms: ColourHistograms | LogOddsTable,
     params: LineParams,
     scale,
     config: LineConfig = DEFAULT_LINE_CONFIG,
@@ -357,7 +359,7 @@ def measure_lines(
     Args:
         camera: a single camera (a crop camera is fine: the image is then the crop).
         T_world_root: (4, 4) pose; points: a view model (its nearest view is used; rigid objects only:
-            every point is on part 0) or `ContourPoints`; image: (H, W, 3) colours in [0, 255]; histograms: colour histograms.
+            every point is on part 0) or `ContourPoints`; image: (H, W, 3) colours in [0, 255]; histograms: colour histograms (or their `LogOddsTable`).
         params: `LineParams`; scale: pixels per segment (int, traced is fine; clamped to
             [1, config.max_scale]).
         model, theta: kinematic tree and (J,) joints for `ContourPoints` of several parts.
@@ -439,7 +441,7 @@ def line_rows(
     T_world_root,
     points: SparseViewModel | ContourPoints,
     image,
-    histograms: ColourHistograms,
+    histograms: ColourHistograms | LogOddsTable,
     params: LineParams,
     scale,
     standard_deviation,
@@ -479,7 +481,7 @@ def refine_pose_lines(
     T_world_root,
     points: SparseViewModel | ContourPoints,
     image,
-    histograms: ColourHistograms,
+    histograms: ColourHistograms | LogOddsTable,
     params: LineParams,
     scales,
     standard_deviations,

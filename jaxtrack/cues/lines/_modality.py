@@ -22,7 +22,7 @@ from ...geometry import part_transforms
 from ...modality import FrameContext, FusionCounts, Modality, Pose, StartContext, register_modality
 from ...render import render
 from ...solve import Correspondences, Cue
-from ._histograms import ColourHistograms, update_histograms
+from ._histograms import ColourHistograms, log_odds_table, update_histograms
 from ._lines import LineConfig, learn_line_histograms, line_rows, measure_lines, schedule
 from ._viewmodel import ContourPoints, SparseViewModel, contour_points_from_render, load_or_build_view_model
 
@@ -152,13 +152,17 @@ class LineRegion(Modality):
             return None
         return self._render_points(ctx, pose)
 
+    def round_start(self, ctx: FrameContext, state: LineState, frame, params):
+        """Each camera's `LogOddsTable` (C, B³): the histograms are fixed during the rounds."""
+        return jax.vmap(lambda h: log_odds_table(h, params.lines.posterior_prior))(state.histograms)
+
     def rows(self, ctx: FrameContext, state: LineState, frame, carry, pose: Pose, render, round_index, params):
         scale, std = schedule(jnp.asarray(self.scales, jnp.int32), jnp.asarray(self.standard_deviations, pose.T_world_root.dtype),
                               round_index)
         images = ctx.frames
 
         def one(cam, c):
-            hist = jax.tree.map(lambda a: a[c], state.histograms)
+            hist = jax.tree.map(lambda a: a[c], carry)  # this camera's log-odds table (round_start)
             return line_rows(cam, pose.T_world_root, self._points(ctx, frame, c), images[c], hist, params.lines, scale, std,
                              self.config, ctx.model, pose.theta, cue=self.cue, camera_index=c, undistort=True)
 

@@ -166,26 +166,28 @@ def _observe_one(atlas, image, depth, camera, T_world_parts, params, config):
     T_cam_parts = camera.T_cam_world @ T_world_parts
     T = T_cam_parts[atlas.texel_part] if T_world_parts.shape[0] > 1 else T_cam_parts[0]
     p, n = atlas.texel_p_model, atlas.texel_normal
-    p_cam = jnp.stack([T[..., i, 0] * p[:, 0] + T[..., i, 1] * p[:, 1] + T[..., i, 2] * p[:, 2] + T[..., i, 3] for i in range(3)], -1)
-    n_cam = jnp.stack([T[..., i, 0] * n[:, 0] + T[..., i, 1] * n[:, 1] + T[..., i, 2] * n[:, 2] for i in range(3)], -1)
-    z = p_cam[:, 2]
+    # Per coordinate columns: XLA:CPU reduces over a minor axis of 3 with a slow strided loop.
+    p_cam = [T[..., i, 0] * p[:, 0] + T[..., i, 1] * p[:, 1] + T[..., i, 2] * p[:, 2] + T[..., i, 3] for i in range(3)]
+    n_cam = [T[..., i, 0] * n[:, 0] + T[..., i, 1] * n[:, 1] + T[..., i, 2] * n[:, 2] for i in range(3)]
+    z = p_cam[2]
     safe_z = jnp.where(z > 1e-6, z, 1e-6)
     K = camera.K
-    x, y = p_cam[:, 0] / safe_z, p_cam[:, 1] / safe_z
+    x, y = p_cam[0] / safe_z, p_cam[1] / safe_z
     u = K[0, 0] * x + K[0, 1] * y + K[0, 2]
     v = K[1, 1] * y + K[1, 2]
     h, w = depth.shape
     ui = jnp.clip(jnp.round(u).astype(jnp.int32), 0, w - 1)
     vi = jnp.clip(jnp.round(v).astype(jnp.int32), 0, h - 1)
-    gray = gaussian_blur(to_gray(image).astype(p_cam.dtype)[..., None], config.blur_sigma)
+    gray = gaussian_blur(to_gray(image).astype(z.dtype)[..., None], config.blur_sigma)
     value, inside = sample_bilinear(gray, u, v)
     depth_at = depth[vi, ui]  # +inf off the object: such texels are hidden behind the silhouette edge
     visible = inside & (z > 1e-6) & jnp.isfinite(depth_at) & (z <= depth_at * (1 + config.depth_tolerance) + 1e-3)
     visible = visible & atlas.texel_live
     # |cos| of the viewing angle (two-sided: open meshes show their inside too).
-    cos = jnp.abs(jnp.sum(n_cam * p_cam, -1)) / jnp.maximum(jnp.linalg.norm(p_cam, axis=-1), 1e-9)
+    distance = jnp.sqrt(p_cam[0] ** 2 + p_cam[1] ** 2 + p_cam[2] ** 2)
+    cos = jnp.abs(n_cam[0] * p_cam[0] + n_cam[1] * p_cam[1] + n_cam[2] * p_cam[2]) / jnp.maximum(distance, 1e-9)
     side = 2 * config.edge_margin + 1
-    interior = box_sum(jnp.isfinite(depth).astype(p_cam.dtype)[..., None], config.edge_margin)[..., 0] >= side * side - 0.5
+    interior = box_sum(jnp.isfinite(depth).astype(z.dtype)[..., None], config.edge_margin)[..., 0] >= side * side - 0.5
     reliable = visible & (cos >= params.min_cos) & interior[vi, ui]
     return TexelObservation(value[:, 0], visible, reliable, vi * w + ui)
 
