@@ -391,7 +391,9 @@ def _prepare_tracking(args, seq, out):
     view0 = seq.views[views[0]]
     gt = view0.T_cam_obj.get(obj_id)
     init_pose = None
-    if args.init_pose is not None:
+    if isinstance(args.init_pose, np.ndarray):  # found from --init-points
+        init_pose = args.init_pose
+    elif args.init_pose is not None:
         init_pose = read_init_pose(args.init_pose)  # model → the first tracked view's camera
     elif gt is None or not np.all(np.isfinite(gt[0])):
         raise ValueError(f"{view0.folder / 'scene_gt.json'}: no pose of obj_id {obj_id} for the first frame; "
@@ -423,7 +425,7 @@ def _prepare_tracking(args, seq, out):
     else:
         if args.joint_limits:
             raise ValueError(f"--joint-limits: obj_id {obj_id} is rigid ({model_path.name}); limits come from a URDF")
-        tm = load_trimesh(model_path)  # an unreadable or empty mesh fails here, named
+        tm = load_trimesh(model_path, seq.model_scale(obj_id))  # an unreadable or empty mesh fails here, named
         vertices, faces = tm.vertices, tm.faces
     recorder = None
     if args.video is not None:
@@ -488,14 +490,57 @@ def _tracking_summary(run, seq, cues, csv, jsonl, recorder) -> None:
         print(f"overlay {kind} -> {recorder.writer.path} ({recorder.writer.count} frames)")
 
 
+def _own_footage(args):
+    """The `Sequence` of a video file or image folder (--mesh, --camera), and the first pose from --init-points
+    (printed with its reprojection error) unless --init-pose gives it. Everything checked before compiling."""
+    from jaxtrack.io import own_sequence, pose_from_points, read_init_points
+
+    missing = [flag for flag, value in (("--mesh", args.mesh), ("--camera", args.camera)) if not value]
+    if missing:
+        raise ValueError(f"{args.sequence}: not a BOP folder (no models/ in it), so it is read as your own footage, which "
+                         f"needs {' and '.join(missing)} (see jaxtrack track --help)")
+    if args.init_points is None and args.init_pose is None:
+        raise ValueError(f"{args.sequence}: your own footage needs the first pose: --init-points POINTS (≥ 4 clicked image "
+                         "points with their model points; `jaxtrack pick` writes the file) or --init-pose POSE")
+    if args.reset_on_failure:
+        raise ValueError("--reset-on-failure: your own footage has no ground truth to reset to")
+    seq = own_sequence(args.sequence, args.mesh, args.camera, args.mesh_unit)
+    if args.init_pose is None:
+        view = seq.views[0]
+        image_points, model_points = read_init_points(args.init_points)
+        found = pose_from_points(image_points, model_points, view.K, view.calibration.dist, seq.model_scale(1),
+                                 what=f"--init-points {args.init_points}")
+        used = int(found.inliers.sum())
+        print(f"first pose from {len(image_points)} points ({used} inliers): reprojection {found.rms_px:.2f} px RMS, "
+              f"{found.max_px:.2f} px at most")
+        args.init_pose = found.T_cam_obj
+    elif args.init_points is not None:
+        raise ValueError("--init-pose and --init-points: give one of them")
+    return seq
+
+
 def _cmd_track(args) -> int:
-    """Track a BOP-layout sequence from its first pose; write the BOP CSV, frames.jsonl and an overlay."""
+    """Track a BOP-layout sequence, a video file or an image folder from its first pose; write the BOP CSV,
+    frames.jsonl and an overlay."""
     import pathlib
 
-    from jaxtrack.io import read_sequence
+    from jaxtrack.io import is_bop_folder, read_sequence
 
-    seq = read_sequence(args.sequence)
-    out = pathlib.Path(args.out) if args.out else pathlib.Path(f"{seq.root.resolve().name}-results.csv")
+    own_flags = [flag for flag, value in (("--mesh", args.mesh), ("--camera", args.camera), ("--init-points", args.init_points))
+                 if value]
+    source = pathlib.Path(args.sequence)
+    if not source.exists():
+        raise FileNotFoundError(f"{source}: no such BOP sequence folder, video file or folder of images")
+    # A BOP folder: models/ beside numbered camera folders (a broken one is read as BOP, so its message names the gap).
+    bop_like = source.is_dir() and any(p.is_dir() and p.name.isdigit() for p in source.iterdir())
+    if is_bop_folder(source) or (bop_like and not own_flags):
+        if own_flags:
+            raise ValueError(f"{args.sequence}: a BOP folder brings its own meshes, camera and first pose; "
+                             f"{', '.join(own_flags)} are for a video file or an image folder")
+        seq = read_sequence(args.sequence)
+    else:
+        seq = _own_footage(args)
+    out = pathlib.Path(args.out) if args.out else pathlib.Path(f"{seq.root.resolve().stem}-results.csv")
     run, csv, jsonl, recorder = _track(args, seq, out)
     _tracking_summary(run, seq, args.cues, csv, jsonl, recorder)
     return 0
@@ -564,12 +609,123 @@ def _cmd_eval(args) -> int:
     from jaxtrack.track import evaluate_tracking
 
     ev = evaluate_tracking(args.results, args.sequence, obj_id=args.obj_id, camera=args.camera)
+    if not np.any(ev.has_gt & ~ev.initial):  # the tables would be empty: say so and fail, not exit 0
+        raise ValueError(f"{args.results}: none of its {len(ev.im_ids)} frame(s) after the first has a ground-truth pose "
+                         f"of obj_id {ev.obj_id} in {args.sequence} (view {ev.camera}): nothing to evaluate")
     _print_evaluation(ev, per_frame=not args.summary)
     return 0
 
 
 DEMO_SIZE = (320, 240)  # small frames (the tracker is compile-bound here); 160x120 loses the box
 DEMO_SEED = 3
+
+
+POINTS_FORMAT = ('{"image_points": [[u, v], ...], "model_points": [[x, y, z], ...]} (pixels of the first frame, x to the '
+                 'right and y down from the top-left pixel centre; model points in the mesh\'s units, in the same order), '
+                 'or a CSV of rows u,v,x,y,z')
+
+
+def _first_frame(source, frame: int) -> np.ndarray:
+    """RGB uint8 frame `frame` of a video file, an image folder or a single image (for `jaxtrack pick`)."""
+    import pathlib
+
+    import cv2
+
+    from jaxtrack.io._own_video import IMAGE_SUFFIXES, _image_files
+
+    source = pathlib.Path(source)
+    if source.is_dir():
+        files = _image_files(source)
+        if len(files) <= frame:
+            raise ValueError(f"{source}: {len(files)} image(s), no frame {frame}")
+        img = cv2.imread(str(files[frame]), cv2.IMREAD_COLOR)
+    elif source.is_file() and source.suffix.lower() in IMAGE_SUFFIXES:
+        img = cv2.imread(str(source), cv2.IMREAD_COLOR)
+    elif source.is_file():
+        cap = cv2.VideoCapture(str(source))
+        if not cap.isOpened():
+            raise ValueError(f"{source}: cannot be opened as a video by OpenCV")
+        for _ in range(frame):
+            cap.grab()
+        ok, img = cap.read()
+        cap.release()
+        img = img if ok else None
+    else:
+        raise FileNotFoundError(f"{source}: no such video file, image or folder")
+    if img is None:
+        raise ValueError(f"{source}: frame {frame} cannot be read")
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def _read_model_points(path) -> np.ndarray:
+    import json
+    import pathlib
+
+    path = pathlib.Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: model points file not found")
+    try:
+        if path.suffix.lower() == ".json":
+            data = json.loads(path.read_text(encoding="utf-8-sig"))
+            pts = np.asarray(data["model_points"] if isinstance(data, dict) else data, np.float64)
+        else:
+            delimiter = "," if path.suffix.lower() == ".csv" else None
+            try:
+                pts = np.loadtxt(path, delimiter=delimiter, ndmin=2, comments="#")
+            except ValueError:  # a header row
+                pts = np.loadtxt(path, delimiter=delimiter, ndmin=2, comments="#", skiprows=1)
+    except (ValueError, KeyError, TypeError) as e:
+        raise ValueError(f"{path}: expected a list of [x, y, z] model points (JSON list, or a CSV / text file of rows "
+                         f"x,y,z): {e}") from None
+    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 4 or not np.all(np.isfinite(pts)):
+        raise ValueError(f"{path}: expected at least 4 finite [x, y, z] model points, got shape {pts.shape}")
+    return pts
+
+
+def _cmd_pick(args) -> int:
+    """Click the image points of given model points on a frame and write the --init-points file."""
+    import json
+    import os
+    import pathlib
+
+    model = _read_model_points(args.model_points)
+    frame = _first_frame(args.input, args.frame)
+    out = pathlib.Path(args.out)
+    _check_writable(out, "-o/--out")
+    try:
+        import matplotlib
+    except ImportError:
+        matplotlib = None
+    headless = os.name == "posix" and not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY") and \
+        os.uname().sysname != "Darwin"
+    if matplotlib is None or headless:
+        still = out.with_suffix(".frame.png")
+        import cv2
+
+        cv2.imwrite(str(still), cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
+        why = "matplotlib is not installed" if matplotlib is None else "no display ($DISPLAY is not set)"
+        raise ValueError(f"cannot show a window: {why}. Frame {args.frame} is written to {still}: read the pixel of each of "
+                         f"the {len(model)} model points in any image viewer and write {out} by hand as {POINTS_FORMAT}")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(10, 10 * frame.shape[0] / frame.shape[1]))
+    ax.imshow(frame)
+    clicked = []
+    for i, p in enumerate(model):
+        ax.set_title(f"click model point #{i} ({p[0]:g}, {p[1]:g}, {p[2]:g})")
+        fig.canvas.draw_idle()
+        got = plt.ginput(1, timeout=0)
+        if not got:
+            plt.close(fig)
+            raise ValueError(f"the window was closed after {len(clicked)} of {len(model)} points: nothing written")
+        clicked.append(got[0])
+        ax.plot(*got[0], "r+", markersize=12)
+        ax.annotate(str(i), got[0], color="yellow")
+    plt.close(fig)
+    out.write_text(json.dumps({"image_points": [[float(u), float(v)] for u, v in clicked],
+                               "model_points": model.tolist()}, indent=1))
+    print(f"{len(clicked)} points -> {out} (use: jaxtrack track {args.input} --init-points {out} ...)")
+    return 0
 
 
 def _cmd_demo(args) -> int:
@@ -683,8 +839,23 @@ def build_parser() -> argparse.ArgumentParser:
         "flag). Every input is checked before compiling. Compiled programs are cached on disk "
         "(~/.cache/jaxtrack/xla or $JAXTRACK_CACHE_DIR).",
     )
-    track.add_argument("sequence", metavar="SEQ", help="the sequence folder")
-    track.add_argument("-o", "--out", help="results CSV (default: ./<SEQ name>-results.csv)")
+    track.add_argument("sequence", metavar="INPUT",
+                       help="a BOP sequence folder, or your own footage: a video file (anything OpenCV decodes) or a folder "
+                       "of images, with --mesh, --camera and --init-points or --init-pose")
+    track.add_argument("-o", "--out", help="results CSV (default: ./<INPUT name>-results.csv)")
+    own = track.add_argument_group("your own video or image folder")
+    own.add_argument("--mesh", help="the object's mesh (any file trimesh reads: .ply, .obj, .stl, .glb, .off)")
+    own.add_argument("--mesh-unit", dest="mesh_unit", choices=("mm", "cm", "m"), default="mm",
+                     help="the mesh's length unit (default mm)")
+    own.add_argument("--camera", metavar="CALIB",
+                     help="OpenCV calibration file (.yaml/.yml/.xml with camera_matrix, distortion_coefficients, "
+                     "image_width, image_height, as cv2.FileStorage writes) or a .json with K and dist; frames are "
+                     "undistorted as they are read")
+    own.add_argument("--init-points", dest="init_points", metavar="POINTS",
+                     help='first pose from ≥ 4 clicked points: a .json {"image_points": [[u, v], ...], "model_points": '
+                     '[[x, y, z], ...]} (pixels of the first frame; mesh units) or a .csv of rows u,v,x,y,z; PnP (RANSAC '
+                     'beyond 4 points) refined by jaxtrack\'s solver; refused when it reprojects worse than 4 px RMS. '
+                     "`jaxtrack pick` writes one")
     track.add_argument("--cues", type=_cue_list, default=CUE_CHOICES, help="comma-separated modalities: region (the configured region modality), flow, sift, levelset or any "
                        "registered modality (default region,flow,sift)")
     track.add_argument("--cameras", type=_index_list, help="comma-separated camera views, e.g. 0,1 (default all)")
@@ -698,8 +869,8 @@ def build_parser() -> argparse.ArgumentParser:
                        "found (status RECOVERED); rigid objects with the line modality; off by default "
                        "(experiments/results/recovery.md)")
     track.add_argument("--init-pose", dest="init_pose", metavar="POSE",
-                       help="first pose, model → first view's camera (mm), instead of scene_gt.json's: a .npy/.json/.txt "
-                       "file or 12 (3x4) / 16 (4x4) numbers, row-major, comma-separated")
+                       help="first pose, model → first view's camera (mm), instead of scene_gt.json's (or of --init-points): "
+                       "a .npy/.json/.txt file or 12 (3x4) / 16 (4x4) numbers, row-major, comma-separated")
     track.add_argument("--max-frames", dest="max_frames", metavar="N", type=_number(int, 1), help="track only the first N frames")
     track.add_argument("--joint-limits", dest="joint_limits", action="store_true",
                        help="articulated (URDF) models: keep the joints within the URDF's limits (off: the method uses no priors)")
@@ -717,6 +888,20 @@ def build_parser() -> argparse.ArgumentParser:
     track.add_argument("--no-cache", action="store_true", help="do not use the on-disk compilation cache")
     track.add_argument("--quiet", action="store_true", help="no progress bar")
     track.set_defaults(func=_cmd_track)
+
+    pick = sub.add_parser(
+        "pick",
+        help="click the image points of given model points on a frame: writes the file --init-points reads",
+        description="Shows a frame of a video file, image folder or image and asks for one click per model point, in "
+        f"order; writes {POINTS_FORMAT} as JSON. Needs matplotlib and a display; without them it writes the frame as a PNG "
+        "and explains how to write the file by hand.",
+    )
+    pick.add_argument("input", metavar="INPUT", help="a video file, a folder of images or an image")
+    pick.add_argument("--model-points", dest="model_points", required=True, metavar="FILE",
+                      help="≥ 4 model points (mesh units): a JSON list of [x, y, z], or a CSV / text file of rows x,y,z")
+    pick.add_argument("-o", "--out", required=True, help="the points file to write (.json)")
+    pick.add_argument("--frame", type=_number(int, 0), default=0, help="which frame (default 0, the first)")
+    pick.set_defaults(func=_cmd_pick)
 
     evaluate = sub.add_parser(
         "eval",

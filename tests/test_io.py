@@ -313,3 +313,23 @@ def test_io_loads_opencv_and_trimesh_lazily():
         "assert jaxtrack.synth.PRESETS and {'cv2', 'trimesh'} <= set(sys.modules)\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
+
+
+def test_outputs_on_a_file_system_that_cannot_be_written_are_refused_before_the_work(tmp_path):
+    """Permission bits do not tell a virtual or read-only file system (root may 'write' anywhere): the output is
+    opened before the work starts, and removed again when the probe created it."""
+    import pathlib
+
+    from jaxtrack.io import prepare_output_file, prepare_output_folder
+
+    virtual = pathlib.Path("/proc/self/jaxtrack-results.csv")
+    if pathlib.Path("/proc/self").is_dir():
+        with pytest.raises(ValueError, match=r"-o/--out: cannot write /proc/self/jaxtrack-results\.csv"):
+            prepare_output_file(virtual, "-o/--out")
+    out = prepare_output_file(tmp_path / "sub" / "r.csv", "-o/--out")
+    assert out.parent.is_dir() and not out.exists()  # the probe leaves nothing behind
+    (tmp_path / "kept.csv").write_text("old")
+    prepare_output_file(tmp_path / "kept.csv", "-o/--out")
+    assert (tmp_path / "kept.csv").read_text() == "old"
+    folder = prepare_output_folder(tmp_path / "frames", "--video")
+    assert folder.is_dir() and not any(folder.iterdir())

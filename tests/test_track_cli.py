@@ -261,7 +261,8 @@ def test_track_option_values(seq_dir, fake, tmp_path, capsys, argv, message):
 
 def test_track_names_a_missing_or_broken_sequence(fake, tmp_path, seq_dir, capsys):
     assert main(["track", str(tmp_path / "nowhere"), "-o", str(tmp_path / "o.csv")]) == 2
-    assert re.search("jaxtrack track: error: .*nowhere: not a directory", capsys.readouterr().err)
+    assert re.search("jaxtrack track: error: .*nowhere: no such BOP sequence folder, video file or folder of images",
+                     capsys.readouterr().err)
     # A sequence without ground truth after frame 0 cannot run the RBOT protocol; nor without frame 0's pose.
     import shutil
 
@@ -308,6 +309,18 @@ def test_eval_refuses_results_of_another_sequence(seq_dir, tmp_path, capsys):
     assert "scene_id 1 is not a camera view" in capsys.readouterr().err
     assert main(["eval", str(tmp_path / "missing.csv"), str(seq_dir)]) == 2
     assert "missing.csv: missing" in capsys.readouterr().err
+    # only the first frame (the given pose): nothing to evaluate is an error, not an empty table and exit 0
+    write_bop_results(tmp_path / "first.csv", [(0, 0, 1, 1.0, T, 0.1)])
+    assert main(["eval", str(tmp_path / "first.csv"), str(seq_dir)]) == 2
+    assert "first.csv: none of its 1 frame(s) after the first has a ground-truth pose" in capsys.readouterr().err
+    # a frames.jsonl whose status is not a status name, or whose confidence is not a number, is refused by line
+    write_bop_results(tmp_path / "typo.csv", [(0, 0, 1, 1.0, T, 0.1), (0, 1, 1, 1.0, T, 0.1)])
+    for line, message in (('{"im_id": 1, "status": "Ok", "confidence": 0.9}', "field 'status' is 'Ok', not a status name"),
+                          ('{"im_id": 1, "status": "OK", "confidence": "high"}', "field 'confidence' is 'high', not a finite")):
+        (tmp_path / "typo.frames.jsonl").write_text('{"im_id": 0, "status": "OK", "confidence": 1.0}\n' + line + "\n")
+        assert main(["eval", str(tmp_path / "typo.csv"), str(seq_dir)]) == 2
+        err = capsys.readouterr().err
+        assert "typo.frames.jsonl:2: " + message in err, err
 
 
 def test_demo_tracks_reports_and_fails_loudly(fake, tmp_path, monkeypatch, capsys):

@@ -1,5 +1,6 @@
-"""I/O: the BOP scene layout, the BOP results CSV, meshes, images, Middlebury .flo flow files, URDF models,
-mocap skeletons and motions (ASF/AMC, BVH) and human body models built from them.
+"""I/O: the BOP scene layout and results CSV; your own video or image folder with an OpenCV calibration file and a
+first pose from clicked points (`own_sequence`, `read_calibration`, `pose_from_points`); meshes, images, Middlebury
+.flo flow files, URDF models, mocap skeletons and motions (ASF/AMC, BVH) and human body models built from them.
 
 Names load on first use (PEP 562): OpenCV and trimesh are imported only when a reader or writer that
 needs them is touched, so `import jaxtrack` and the .flo functions stay light.
@@ -33,6 +34,16 @@ _EXPORTS = {
     "read_image": "_images",
     "write_image": "_images",
     "load_mesh": "_meshes",
+    "CameraCalibration": "_own_video",
+    "PointsPose": "_own_video",
+    "VideoView": "_own_video",
+    "check_first_pose": "_own_video",
+    "is_bop_folder": "_own_video",
+    "own_sequence": "_own_video",
+    "pose_from_points": "_own_video",
+    "read_calibration": "_own_video",
+    "read_init_points": "_own_video",
+    "write_calibration": "_own_video",
     "load_trimesh": "_meshes",
     "ArticulatedModel": "_urdf",
     "RobotDescription": "_urdf",
@@ -96,6 +107,16 @@ if TYPE_CHECKING:  # static analysers and IDEs see the real definitions
     from ._mocap import read_asf as read_asf
     from ._mocap import read_bvh as read_bvh
     from ._mocap import write_bvh as write_bvh
+    from ._own_video import CameraCalibration as CameraCalibration
+    from ._own_video import PointsPose as PointsPose
+    from ._own_video import VideoView as VideoView
+    from ._own_video import check_first_pose as check_first_pose
+    from ._own_video import is_bop_folder as is_bop_folder
+    from ._own_video import own_sequence as own_sequence
+    from ._own_video import pose_from_points as pose_from_points
+    from ._own_video import read_calibration as read_calibration
+    from ._own_video import read_init_points as read_init_points
+    from ._own_video import write_calibration as write_calibration
     from ._urdf import ArticulatedModel as ArticulatedModel
     from ._urdf import RobotDescription as RobotDescription
     from ._urdf import RobotJoint as RobotJoint

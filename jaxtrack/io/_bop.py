@@ -91,11 +91,18 @@ class CameraView:
 
 @dataclasses.dataclass
 class Sequence:
-    """A BOP-layout sequence: meshes and one `CameraView` per camera."""
+    """A BOP-layout sequence: meshes and one `CameraView` per camera.
+
+    `model_scales`: obj_id → factor from the mesh file's unit to millimetres (1 when absent: BOP meshes are in
+    mm; `jaxtrack.io.own_sequence` sets it from --mesh-unit)."""
 
     root: pathlib.Path
     model_paths: dict
     views: list
+    model_scales: dict = dataclasses.field(default_factory=dict)
+
+    def model_scale(self, obj_id: int) -> float:
+        return float(self.model_scales.get(obj_id, 1.0))
 
     @property
     def num_frames(self) -> int:

@@ -85,7 +85,24 @@ def prepare_output_file(path: str | os.PathLike, what: str = "output file", suff
     if suffixes is not None and path.suffix.lower() not in suffixes:
         raise ValueError(f"{what}: {path} must end in one of {', '.join(suffixes)}")
     _make_folder(path.parent, what)
+    _probe_write(path, what)
     return path
+
+
+def _probe_write(path: pathlib.Path, what: str) -> None:
+    """Open `path` for appending (creating it) and close it, removing it again when it did not exist: a read-only
+    or virtual file system is found before the work, not after it (permission bits alone do not tell)."""
+    existed = path.exists()
+    try:
+        with open(path, "ab"):
+            pass
+    except OSError as e:
+        raise ValueError(f"{what}: cannot write {path} ({e.strerror or e})") from e
+    if not existed:
+        try:
+            path.unlink()
+        except OSError:
+            pass
 
 
 def prepare_output_folder(path: str | os.PathLike, what: str = "output folder") -> pathlib.Path:
@@ -94,6 +111,7 @@ def prepare_output_folder(path: str | os.PathLike, what: str = "output folder") 
     if path.exists() and not path.is_dir():
         raise ValueError(f"{what}: {path} exists and is not a folder")
     _make_folder(path, what)
+    _probe_write(path / f".jaxtrack-write-test-{os.getpid()}", what)
     return path
 
 

@@ -170,7 +170,7 @@ def track_sequence(
         ValueError: a camera index out of range, an unknown object, no initial pose, a joint named in
             scene_gt.json or `init_joints` that the URDF lacks.
     """
-    from ..io import Sequence, load_mesh, read_sequence
+    from ..io import Sequence, check_first_pose, load_mesh, read_sequence
 
     seq = sequence if isinstance(sequence, Sequence) else read_sequence(sequence)
     views = list(range(len(seq.views))) if cameras is None else [int(c) for c in cameras]
@@ -189,6 +189,7 @@ def track_sequence(
     ])
     gt = view0.T_cam_obj.get(obj_id)
     T_cam0_world = np.asarray(view0.T_cam_world, np.float64)
+    pose_source = "init_pose" if init_pose is not None else f"{view0.folder / 'scene_gt.json'}: frame 0, obj_id {obj_id}"
     if init_pose is None:
         if gt is None or not np.all(np.isfinite(gt[0])):
             raise ValueError(f"{view0.folder}/scene_gt.json has no pose of obj_id {obj_id} in the first frame; "
@@ -210,7 +211,11 @@ def track_sequence(
     else:
         if init_joints:
             raise ValueError(f"init_joints given, but obj_id {obj_id} is rigid ({model_path.name})")
-        mesh, model, theta0, theta_gt = load_mesh(model_path), None, None, None
+        mesh, model, theta0, theta_gt = load_mesh(model_path, seq.model_scale(obj_id)), None, None, None
+        # Before anything compiles: a mesh in the wrong unit (metres read as mm: a dot; mm read as metres: the
+        # camera inside it) or a pose that does not show the object.
+        check_first_pose(np.asarray(mesh.vertices, np.float64), view0.K, view0.width, view0.height, init_pose, pose_source,
+                         diameter_mm=_info_diameter(seq, obj_id))
     if joint_limits and articulated is None:
         raise ValueError(f"joint_limits: obj_id {obj_id} is rigid ({model_path.name}); limits come from a URDF")
     if config is None:
@@ -461,10 +466,28 @@ def _frames_jsonl(path: pathlib.Path, im_ids: list) -> tuple[list | None, np.nda
             by_id[int(rec["im_id"])] = (str(rec["status"]), bool(rec.get("reset", False)))
         except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
             raise ValueError(f"{path}:{n}: malformed frame record ({e})") from e
+        if rec["status"] not in Status.__members__:  # a typo would otherwise count as a flagged (lost) frame
+            raise ValueError(f"{path}:{n}: field 'status' is {rec['status']!r}, not a status name "
+                             f"({', '.join(Status.__members__)})")
+        confidence = rec.get("confidence", 0.0)
+        if isinstance(confidence, bool) or not isinstance(confidence, int | float) or not np.isfinite(confidence):
+            raise ValueError(f"{path}:{n}: field 'confidence' is {confidence!r}, not a finite number")
     missing = [i for i in im_ids if i not in by_id]
     if missing:
         raise ValueError(f"{path}: no record for im_id {missing[0]} of the results CSV ({len(missing)} missing)")
     return [by_id[i][0] for i in im_ids], np.array([by_id[i][1] for i in im_ids], bool)
+
+
+def _info_diameter(seq, obj_id: int) -> float | None:
+    """The object's diameter (mm) from models/models_info.json, None when the file or the entry is missing."""
+    info = seq.root / "models" / "models_info.json"
+    if not info.is_file():
+        return None
+    try:
+        d = float(json.loads(info.read_text())[str(obj_id)]["diameter"])
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError, OSError):
+        return None
+    return d if np.isfinite(d) and d > 0 else None
 
 
 def _diameter(seq, obj_id: int, tm) -> float:
@@ -539,7 +562,7 @@ def evaluate_tracking(results, sequence, *, obj_id: int | None = None, camera: i
     gt_all = view.T_cam_obj.get(obj_id)
     T_gt = np.full_like(T_est, np.nan) if gt_all is None else np.asarray(gt_all, np.float64)[k]
     has_gt = np.all(np.isfinite(T_gt), axis=(1, 2))
-    tm = load_trimesh(seq.model_paths[obj_id])
+    tm = load_trimesh(seq.model_paths[obj_id], seq.model_scale(obj_id))
     points = np.asarray(tm.vertices, np.float64)
     if len(points) > MAX_EVAL_POINTS:
         points = points[np.sort(np.random.default_rng(0).choice(len(points), MAX_EVAL_POINTS, replace=False))]
