@@ -774,8 +774,8 @@ def _cmd_demo(args) -> int:
     return 0
 
 
-def _number(kind, low=None, high=None, low_open=False):
-    """An argparse type: `kind` (int/float) in [low, high] (low excluded if low_open), finite."""
+def _number(kind, low=None, high=None, low_open=False, high_open=False):
+    """An argparse type: `kind` (int/float) in [low, high] (low / high excluded if low_open / high_open), finite."""
 
     def parse(text: str):
         try:
@@ -784,9 +784,10 @@ def _number(kind, low=None, high=None, low_open=False):
             raise argparse.ArgumentTypeError(f"expected {'an integer' if kind is int else 'a number'}, got {text!r}") from None
         if kind is float and not np.isfinite(value):
             raise argparse.ArgumentTypeError(f"must be finite, got {text}")
-        if low is not None and (value <= low if low_open else value < low) or high is not None and value > high:
+        if low is not None and (value <= low if low_open else value < low) or high is not None and (
+                value >= high if high_open else value > high):
             lo = "" if low is None else f"{'>' if low_open else '≥'} {low:g}"
-            hi = "" if high is None else f"≤ {high:g}"
+            hi = "" if high is None else f"{'<' if high_open else '≤'} {high:g}"
             raise argparse.ArgumentTypeError(f"must be {' and '.join(x for x in (lo, hi) if x)}, got {text}")
         return value
 
@@ -973,7 +974,7 @@ def build_parser() -> argparse.ArgumentParser:
     flow.add_argument("--gamma", type=_number(float, 0), default=float(defaults.gamma), help=f"gradient-constancy weight γ (default {float(defaults.gamma):g})")
     flow.add_argument("--epsilon", type=_number(float, 0, low_open=True), default=1e-3, help="ε of the robust penalty (default 0.001)")
     flow.add_argument("--quadratic", action="store_true", help="quadratic smoothness (the paper's rigid setting uses α = 800)")
-    flow.add_argument("--eta", type=_number(float, 0, 1, low_open=True), default=cfg.eta, help=f"pyramid factor η (default {cfg.eta})")
+    flow.add_argument("--eta", type=_number(float, 0, 1, low_open=True, high_open=True), default=cfg.eta, help=f"pyramid factor η (default {cfg.eta})")
     flow.add_argument("--warps", type=_number(int, 1), default=cfg.warps, help=f"warps per level (default {cfg.warps})")
     flow.add_argument("--lagged", type=_number(int, 1), default=cfg.lagged, help=f"lagged-nonlinearity iterations per warp (default {cfg.lagged})")
     flow.add_argument("--sor", type=_number(int, 1), default=cfg.sor_iters, help=f"SOR sweeps per lagged iteration (default {cfg.sor_iters})")

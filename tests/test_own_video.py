@@ -231,3 +231,15 @@ def test_pick_without_a_display_writes_the_frame_and_explains_the_format(own, tm
     assert still.shape == (H, W, 3)
     assert main(["pick", str(own["video"]), "--model-points", str(tmp_path / "none.csv"), "-o", str(out)]) == 2
     assert "none.csv: model points file not found" in capsys.readouterr().err
+
+
+def test_a_calibration_for_another_resolution_is_named(own, tmp_path):
+    K = own["seq"].views[0].K.copy()
+    K[:2, 2] *= 4  # the principal point of a 4x larger image
+    calib = tmp_path / "big.json"
+    calib.write_text(json.dumps({"K": K.tolist()}))
+    with pytest.raises(ValueError, match=r"big\.json: the principal point .* lies outside the 160x120 frames"):
+        own_sequence(own["video"], own["mesh"], calib)
+    calib.write_text(json.dumps({"K": own["seq"].views[0].K.tolist(), "width": 320, "height": 240}))
+    with pytest.raises(ValueError, match=r"big\.json: the calibration is for 320x240 images"):
+        own_sequence(own["video"], own["mesh"], calib)

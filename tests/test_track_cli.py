@@ -309,6 +309,14 @@ def test_eval_refuses_results_of_another_sequence(seq_dir, tmp_path, capsys):
     assert "scene_id 1 is not a camera view" in capsys.readouterr().err
     assert main(["eval", str(tmp_path / "missing.csv"), str(seq_dir)]) == 2
     assert "missing.csv: missing" in capsys.readouterr().err
+    assert main(["eval", str(tmp_path), str(seq_dir)]) == 2
+    assert "is a folder; expected the results CSV" in capsys.readouterr().err
+    # a byte-order mark before the header (a spreadsheet's export) is not a malformed header
+    bom = tmp_path / "bom.csv"
+    write_bop_results(bom, [(0, 0, 1, 1.0, T, 0.1), (0, 1, 1, 1.0, T, 0.1)])
+    bom.write_bytes(b"\xef\xbb\xbf" + bom.read_bytes())
+    assert main(["eval", str(bom), str(seq_dir), "--summary"]) == 0
+    capsys.readouterr()
     # only the first frame (the given pose): nothing to evaluate is an error, not an empty table and exit 0
     write_bop_results(tmp_path / "first.csv", [(0, 0, 1, 1.0, T, 0.1)])
     assert main(["eval", str(tmp_path / "first.csv"), str(seq_dir)]) == 2

@@ -422,9 +422,11 @@ def read_bop_results(path: str | os.PathLike) -> list:
         SequenceError: naming the file and line of a malformed row (field count, numbers, R not a rotation).
     """
     path = pathlib.Path(path)
+    if path.is_dir():
+        raise SequenceError(f"{path}: is a folder; expected the results CSV (jaxtrack track -o)")
     if not path.is_file():
         raise SequenceError(f"{path}: missing")
-    lines = path.read_text().strip().splitlines()
+    lines = path.read_text(encoding="utf-8-sig").strip().splitlines()  # a BOM from a spreadsheet is not part of the header
     if not lines or lines[0].strip() != RESULT_HEADER:
         raise SequenceError(f"{path}: header must be '{RESULT_HEADER}'")
     rows = []

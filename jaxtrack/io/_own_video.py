@@ -320,6 +320,10 @@ def own_sequence(source: str | os.PathLike, mesh: str | os.PathLike, calibration
         frame_paths, video = [source] * n, source
     else:
         raise FileNotFoundError(f"{source}: no such video file or folder of images")
+    cx, cy = calib.K[0, 2], calib.K[1, 2]
+    if not (-0.5 <= cx <= width - 0.5 and -0.5 <= cy <= height - 0.5):
+        raise ValueError(f"{calib.source}: the principal point ({cx:g}, {cy:g}) lies outside the {width}x{height} frames of "
+                         f"{source}: a calibration for another resolution?")
     if (calib.width, calib.height) != (None, None) and (calib.width, calib.height) != (width, height):
         raise ValueError(f"{calib.source}: the calibration is for {calib.width}x{calib.height} images, {source} has "
                          f"{width}x{height} frames")

@@ -187,8 +187,10 @@ class LineRegion(Modality):
         images = ctx.frames
         scale = jnp.asarray(self.scales[-1], jnp.int32)
 
+        tables = state.histograms if carry is None else carry  # the rounds' log-odds tables (same histograms)
+
         def one(cam, c):
-            hist = jax.tree.map(lambda a: a[c], state.histograms)
+            hist = jax.tree.map(lambda a: a[c], tables)
             m = measure_lines(cam, pose.T_world_root, self._points(ctx, frame, c), images[c], hist, params.lines, scale,
                               self.config, ctx.model, pose.theta)
             return jnp.sum(m.valid), jnp.sum(m.valid & (jnp.abs(m.mean) <= self.inlier_px))
