@@ -239,7 +239,7 @@ def worker(spec: dict) -> dict:
     tracker = Tracker(load_mesh(seq.model_paths[1]), rig, config=config)
 
     def frames(k):
-        return np.stack([seq.views[c].read_frame(k) for c in views])
+        return np.stack([seq.views[c].read_frame(k, dtype=None) for c in views])  # 8-bit, as track_sequence reads them
 
     def traces():
         try:

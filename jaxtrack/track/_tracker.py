@@ -254,6 +254,7 @@ class Tracker:
         self.prepared: tuple | None = None
         self.pose_prior = pose_prior
         self.last_good_pose = None  # (4, 4) the last pose reported OK (or RECOVERED): a recovery's second reference
+        self._boxes_memo = None  # (pose bytes, (C, 4) boxes) of the last projected pose (`_boxes_at`)
         self.recoveries = 0  # frames RECOVERED since `start`
         self._recovery_warmup: threading.Thread | None = None
         # Compile the recovery program in the background after the first frame (`_warm_up_recovery`);
@@ -296,7 +297,7 @@ class Tracker:
             frames = np.repeat(frames, 3, axis=-1)
         if frames.dtype == np.uint8:  # 8-bit frames go to the step as they are (a quarter of the bytes)
             return frames
-        frames = frames.astype(np.float32)
+        frames = frames.astype(np.float32, copy=False)
         if not np.all(np.isfinite(frames)):
             raise ValueError(f"{name} contain non-finite pixel values")
         return frames
@@ -524,7 +525,7 @@ class Tracker:
         frames = self.check_frames(frames, "frames")
         timings: dict = {}
         start = time.perf_counter()
-        before = projected_boxes(self.mesh, self.cameras, state.T_world_root, state.theta, self.model)
+        before = self._boxes_at(state.T_world_root, state.theta)
         H, W = self.cameras.height, self.cameras.width
         on_screen = np.isfinite(before).all(1) & (before[:, 2] >= 0) & (before[:, 0] < W) & (before[:, 3] >= 0) & (before[:, 1] < H)
         offsets, crop_shape, scales = (self.windows(state.T_world_root, state.theta, before) if on_screen.any()
@@ -556,11 +557,21 @@ class Tracker:
                 and self.config.recovery.hypotheses):
             self._warm_up_recovery(new_state, frames_j, params)
         timings["total_s"] = time.perf_counter() - start
-        moved = projected_boxes(self.mesh, self.cameras, result.T_world_root, result.theta, self.model)
+        moved = self._boxes_at(result.T_world_root, result.theta)
         if np.all(np.isfinite(moved)) and np.all(np.isfinite(before)):
             self.last_motion_px = float(np.max(np.abs(moved - before)))
         return new_state, result, {"timings": timings, "offsets": offsets, "crop_shape": crop_shape, "scales": scales,
                                    "recovery": recovery}
+
+    def _boxes_at(self, T, theta) -> np.ndarray:
+        """`projected_boxes` at (T, Θ), remembered for one pose: a step's final pose is the next step's start, so each
+        frame projects the mesh once (a compiled call and a device round trip)."""
+        key = np.asarray(T).tobytes() + np.asarray(theta).tobytes()
+        if self._boxes_memo is not None and self._boxes_memo[0] == key:
+            return self._boxes_memo[1].copy()
+        boxes = projected_boxes(self.mesh, self.cameras, T, theta, self.model)
+        self._boxes_memo = (key, boxes)
+        return boxes.copy()
 
     def _run_step(self, state, frames_j, host, offsets, params, crop_shape, scales):
         """The compiled step; after a render overflow the plans are made again and the frame is redone."""
