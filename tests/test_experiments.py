@@ -26,6 +26,19 @@ def test_bench_pose_quick(tmp_path):
     assert throughput[0][4] == 1.0  # every batched solve converged
 
 
+def test_init_points_quick(tmp_path):
+    """experiments/init_points.py: pose_from_points against the truth; both outliers found in every 10-point scene."""
+    text = _load("init_points").main(["--trials", "4", "--out", str(tmp_path / "p.md")])
+    assert (tmp_path / "p.md").read_text() == text
+    rows = {line.split(" | ")[0].strip("| "): line for line in text.splitlines()
+            if line.startswith(("| 4 points", "| 10 points"))}
+    assert set(rows) == {"4 points: EPnP alone", "4 points: SQPnP alone", "4 points: pose_from_points",
+                         "10 points, 2 outliers: pose_from_points"}
+    assert "both, exactly, in 4 of 4" in rows["10 points, 2 outliers: pose_from_points"]
+    worst = float(rows["10 points, 2 outliers: pose_from_points"].split(" | ")[1].split(" / ")[1])
+    assert worst < 5.0
+
+
 @pytest.mark.heavy
 def test_bench_flow_quick(tmp_path, shared_data):
     out = tmp_path / "flow.md"

@@ -402,8 +402,10 @@ def pose_from_points(image_points, model_points, K, dist=None, scale: float = 1.
                      max_rms_px: float = 4.0, what: str = "--init-points") -> PointsPose:
     """The model → camera pose from ≥ 4 image / model point pairs.
 
-    EPnP (RANSAC with `ransac_px` when there are more than four pairs) gives a start, and jaxtrack's own
-    Gauss-Newton on the Plücker lines of the inliers (`jaxtrack.solve.estimate_pose`, eq. 4-5) refines it.
+    With more than four pairs RANSAC over EPnP samples (`ransac_px`) gives the start and the inliers (SQPnP on all
+    pairs when it fails); with four, SQPnP (globally optimal: on four points with 1 px noise EPnP was off by up to
+    134°, SQPnP by 4.4° at most, experiments/init_points.py). jaxtrack's own Gauss-Newton on the Plücker lines of the inliers
+    (`jaxtrack.solve.estimate_pose`, eq. 4-5) refines it.
 
     Args:
         image_points: (n, 2) pixels. model_points: (n, 3) in the mesh's units; `scale` converts them to mm.
@@ -434,9 +436,9 @@ def pose_from_points(image_points, model_points, K, dist=None, scale: float = 1.
             inliers = np.zeros(n, bool)
             inliers[idx.reshape(-1)] = True
         else:
-            ok, rvec, tvec = cv2.solvePnP(mdl, ideal, K, None, flags=cv2.SOLVEPNP_EPNP)
+            ok, rvec, tvec = cv2.solvePnP(mdl, ideal, K, None, flags=cv2.SOLVEPNP_SQPNP)
     else:
-        ok, rvec, tvec = cv2.solvePnP(mdl, ideal, K, None, flags=cv2.SOLVEPNP_EPNP)
+        ok, rvec, tvec = cv2.solvePnP(mdl, ideal, K, None, flags=cv2.SOLVEPNP_SQPNP)
     if not ok:
         raise ValueError(f"{what}: PnP found no pose for these {n} points")
     T = np.eye(4)
