@@ -168,7 +168,8 @@ def track_sequence(
 
     Raises:
         ValueError: a camera index out of range, an unknown object, no initial pose, a joint named in
-            scene_gt.json or `init_joints` that the URDF lacks.
+            scene_gt.json or `init_joints` that the URDF lacks, a rigid mesh whose unit does not fit the first
+            pose (`jaxtrack.io.check_first_pose`: a dot-sized object, the camera inside the model).
     """
     from ..io import Sequence, check_first_pose, load_mesh, read_sequence
 
@@ -491,14 +492,10 @@ def _info_diameter(seq, obj_id: int) -> float | None:
 
 
 def _diameter(seq, obj_id: int, tm) -> float:
-    info = seq.root / "models" / "models_info.json"
-    if info.is_file():
-        try:
-            d = float(json.loads(info.read_text())[str(obj_id)]["diameter"])
-            if np.isfinite(d) and d > 0:
-                return d
-        except (json.JSONDecodeError, KeyError, TypeError, ValueError):
-            pass  # a models_info.json without this object's diameter: measure it
+    """models_info.json's diameter when it has this object's, else measured on the mesh (its convex hull)."""
+    d = _info_diameter(seq, obj_id)
+    if d is not None:
+        return d
     from ._evaluate import model_diameter
 
     return model_diameter(np.asarray(tm.convex_hull.vertices if len(tm.vertices) > 3 else tm.vertices))
