@@ -448,7 +448,7 @@ def pose_from_points(image_points, model_points, K, dist=None, scale: float = 1.
     if np.any(p_cam[inliers, 2] <= 0):
         raise ValueError(f"{what}: the pose puts {int(np.sum(p_cam[inliers, 2] <= 0))} of the points behind the camera: "
                          "check that each image point matches its model point (same order)")
-    proj = p_cam[:, :2] / p_cam[:, 2:3] * np.diag(K)[:2] + K[:2, 2]
+    proj = _pinhole(K, p_cam)
     err = np.linalg.norm(proj - ideal, axis=1)
     rms, worst = float(np.sqrt(np.mean(err[inliers] ** 2))), float(err[inliers].max())
     if rms > max_rms_px:
@@ -456,6 +456,13 @@ def pose_from_points(image_points, model_points, K, dist=None, scale: float = 1.
         raise ValueError(f"{what}: the best pose reprojects the points {rms:.1f} px RMS (more than {max_rms_px:g} px; per "
                          f"point {listing}): check the order of the pairs, the model unit (--mesh-unit) and the calibration")
     return PointsPose(T, rms, worst, inliers)
+
+
+def _pinhole(K, p_cam) -> np.ndarray:
+    """(n, 2) pixels of camera-frame points (n, 3) through K (skew included), host-side."""
+    K = np.asarray(K, np.float64)
+    h = p_cam / p_cam[:, 2:3]
+    return h @ K[:2].T
 
 
 def _refine_on_lines(pixels, model_mm, K, T_cam_obj) -> np.ndarray:
@@ -499,7 +506,7 @@ def check_first_pose(vertices_mm, K, width: int, height: int, T_cam_obj, what: s
         raise ValueError(f"{what}: the camera is inside the model or part of the model is behind it (the mesh spans "
                          f"{size:.4g} mm, its centre is {np.linalg.norm(centre_cam):.4g} mm from the camera): a mesh in "
                          f"millimetres read as metres? (--mesh-unit mm) or a wrong pose")
-    uv = p[:, :2] / p[:, 2:3] * np.diag(K)[:2] + np.asarray(K)[:2, 2]
+    uv = _pinhole(K, p)
     extent = float(np.max(uv.max(0) - uv.min(0)))
     if extent < min_px:
         raise ValueError(f"{what}: the model is {extent:.2g} px wide in the image at the first pose (the mesh spans "
