@@ -41,6 +41,7 @@ def frames(tmp_path):
     cv2.imwrite(str(tmp_path / "a.png"), a)
     cv2.imwrite(str(tmp_path / "b.png"), np.roll(a, 1, axis=1))
     cv2.imwrite(str(tmp_path / "small.png"), a[:10])
+    cv2.imwrite(str(tmp_path / "rgba.png"), np.stack([np.roll(a, 1, axis=1)] * 3 + [np.full_like(a, 255)], -1))
     cv2.imwrite(str(tmp_path / "empty_mask.png"), np.zeros_like(a))
     write_flo(tmp_path / "gt_small.flo", np.zeros((10, 32, 2)))
     (tmp_path / "a_file").write_text("not a folder")
@@ -93,7 +94,7 @@ def test_flow_checks_outputs_and_inputs_before_solving(frames, fake_solve, capsy
     "frame1, frame2, message",
     [
         ("missing.png", "b.png", "missing.png: image file not found"),
-        ("a.png", "small.png", "frames differ in size: .*a.png is \\(24, 32\\), .*small.png is \\(10, 32\\)"),
+        ("a.png", "small.png", "frames differ in size: .*a.png is 32x24, .*small.png is 32x10"),
         ("a_file", "b.png", "a_file: cannot read image"),
     ],
 )
@@ -124,6 +125,31 @@ def test_flow_parameters_are_validated_before_anything_runs(frames, fake_solve, 
     assert exit_info.value.code == 2
     assert "jaxtrack flow: error: " + message in capsys.readouterr().err
     assert fake_solve.calls == 0 and not (frames / "o.flo").exists()
+
+
+def test_a_grey_and_a_colour_frame_are_compared_in_grey(frames, fake_solve, capsys):
+    assert main(["flow", str(frames / "a.png"), str(frames / "rgba.png"), "-o", str(frames / "o.flo"), "--no-cache"]) == 0
+    assert re.search(r"note: .*a\.png is grey, the other frame colour: both are read as grey", capsys.readouterr().out)
+    assert fake_solve.calls == 1 and (frames / "o.flo").exists()
+
+
+def test_synth_poses_behind_the_camera_are_named_and_leave_no_folder(frames, capsys):
+    poses = np.repeat(np.eye(4)[None], 3, 0)
+    poses[:, 2, 3] = -900.0
+    np.save(frames / "behind.npy", poses)
+    argv = ["synth", str(frames / "s"), "--motion", "file", "--pose-file", str(frames / "behind.npy"), "--frames", "3", "--quiet"]
+    assert main(argv) == 2
+    assert re.search(r"behind.npy: pose 0 puts the object behind camera 0 \(depth -\d+", capsys.readouterr().err)
+    assert not (frames / "s").exists()
+
+
+def test_a_twist_of_the_wrong_length_is_named():
+    from jaxtrack.geometry import se3_exp, so3_log
+
+    with pytest.raises(ValueError, match=r"se3_exp: the input must have shape \(\.\.\., 6\), got \(5,\)"):
+        se3_exp(np.zeros(5))
+    with pytest.raises(ValueError, match=r"so3_log: the input must have shape \(\.\.\., 3, 3\), got \(4, 4\)"):
+        so3_log(np.eye(4))
 
 
 def test_a_failed_solve_exits_1_with_its_status(frames, monkeypatch, capsys):

@@ -24,7 +24,24 @@ _TAYLOR_THETA_SQ = 1e-2
 
 
 def _vectorize(signature: str):
-    return functools.partial(jnp.vectorize, signature=signature)
+    """`jnp.vectorize` with `signature`, whose input's trailing shape is checked first: a (5,) twist or a
+    (3, 4) matrix is a ValueError naming the function and the shape it needs, not a vectorize error."""
+    core = tuple(int(d) for d in signature.split("->")[0].strip("()").split(","))
+
+    def wrap(fn):
+        vectorized = jnp.vectorize(fn, signature=signature)
+
+        @functools.wraps(fn)
+        def checked(x):
+            shape = jnp.shape(x)
+            if shape[len(shape) - len(core):] != core or len(shape) < len(core):
+                need = ", ".join(map(str, core))
+                raise ValueError(f"{fn.__name__}: the input must have shape (..., {need}), got {shape}")
+            return vectorized(x)
+
+        return checked
+
+    return wrap
 
 
 @_vectorize("(3)->(3,3)")

@@ -265,6 +265,11 @@ def read_camera_view(folder: str | os.PathLike) -> CameraView:
                                     f"({images[first].name}) is {width}x{height}; all frames of a camera must have one size")
     except (FileNotFoundError, ValueError) as e:
         raise SequenceError(str(e)) from e
+    cx, cy = float(K[0, 2]), float(K[1, 2])
+    if not (-0.5 <= cx <= width - 0.5 and -0.5 <= cy <= height - 0.5):
+        raise SequenceError(f"{cam_path}: frame {first} field 'cam_K' puts the principal point at ({cx:g}, {cy:g}), outside the "
+                            f"{width}x{height} images: a calibration for another resolution, or cam_K not row-major "
+                            "[fx, 0, cx, 0, fy, cy, 0, 0, 1]?")
     return CameraView(folder, list(images.values()), K, _transform(R, t), poses, width, height, ids, joints)
 
 

@@ -14,6 +14,7 @@ import dataclasses
 import json
 import os
 import pathlib
+import shutil
 from typing import Protocol
 
 import cv2
@@ -263,8 +264,15 @@ def render_sequence(cfg: SynthConfig, progress: Progress | None = None):
         T = np.repeat(np.eye(4)[None], n, 0)
         T[:, :3, :3], T[:, :3, 3] = R, t
         rigs.append(T @ np.linalg.inv(T_cam0[0]) @ T_cam0 if cfg.motion == "camera" else T)
-    occ, occ_colours = _occluder_masks(cfg, rng, n)
     keep = np.arange(0, n, cfg.subsample)
+    for c, T_cam in enumerate(rigs):  # before anything is rendered: an object behind a camera cannot be drawn
+        z = np.einsum("kij,kj->ki", T_cam[keep], T_obj[keep][:, :, 3])[:, 2]
+        if np.any(z <= 0):
+            k = int(keep[np.argmax(z <= 0)])
+            where = f"{cfg.pose_file}: pose {k}" if cfg.motion == "file" else f"motion {cfg.motion!r}, frame {k}"
+            raise ValueError(f"{where} puts the object behind camera {c} (depth {z[np.argmax(z <= 0)]:.1f} mm ≤ 0); poses are "
+                             f"in mm in the world frame, whose origin the first camera sees at {cfg.distance:g} mm")
+    occ, occ_colours = _occluder_masks(cfg, rng, n)
     out = {"K": K, "images": [], "T_cam_obj": [], "T_cam_world": [], "object_mask": [], "occluder_mask": []}
     for T_cam in rigs:
         imgs, poses, objm, occm = [], [], [], []
@@ -302,8 +310,14 @@ def write_sequence(cfg: SynthConfig, root: str | os.PathLike, progress: Progress
     Raises:
         ValueError: `root` is an existing file (checked before rendering), or a bad config value.
     """
+    existed = pathlib.Path(root).exists()
     root = prepare_output_folder(root, "write_sequence: root")  # before rendering, not after
-    seq = render_sequence(cfg, progress)
+    try:
+        seq = render_sequence(cfg, progress)
+    except Exception:
+        if not existed:  # no empty folder left behind by a config that cannot be rendered
+            shutil.rmtree(root, ignore_errors=True)
+        raise
     (root / "models").mkdir(parents=True, exist_ok=True)
     seq["mesh"].export(root / "models" / "obj_000001.ply")
     for c in range(len(seq["images"])):
