@@ -66,6 +66,7 @@ def _cmd_demo_solver(args) -> int:
 def _cmd_synth(args) -> int:
     """Write a synthetic BOP-layout sequence with exact ground truth."""
     import dataclasses
+    import pathlib
 
     from tqdm import tqdm
 
@@ -90,7 +91,10 @@ def _cmd_synth(args) -> int:
                                                "noise_sigma", "salt_fraction", "occluders", "cameras", "subsample", "seed")
                  if getattr(args, k) is not None}
     cfg = dataclasses.replace(cfg, **overrides)  # SynthConfig validates every field
+    existed = pathlib.Path(args.out).exists()
     prepare_output_folder(args.out, "output folder")  # before rendering: a file in the way fails now
+    if not existed:  # write_sequence removes the folder it made when the config cannot be rendered
+        pathlib.Path(args.out).rmdir()
     with tqdm(total=cfg.frames * cfg.cameras, desc="rendering", disable=args.quiet) as bar:
         root = write_sequence(cfg, args.out, progress=bar)
     print(f"wrote {cfg.frames} frames x {cfg.cameras} camera(s) to {root}")
@@ -203,8 +207,12 @@ def _cmd_flow(args) -> int:
     viz = prepare_image_output(args.viz, "--viz") if args.viz else None
     mode = "grey" if args.grey else "native"  # colour frames keep all channels: the data term sums over them
     img1, img2 = read_image(args.frame1, mode), read_image(args.frame2, mode)
-    if img1.shape != img2.shape:
-        raise ValueError(f"frames differ in size: {args.frame1} is {img1.shape}, {args.frame2} is {img2.shape}")
+    if img1.shape[:2] != img2.shape[:2]:
+        raise ValueError(f"frames differ in size: {args.frame1} is {img1.shape[1]}x{img1.shape[0]}, {args.frame2} is "
+                         f"{img2.shape[1]}x{img2.shape[0]}")
+    if img1.ndim != img2.ndim:  # one grey file, one colour (or RGBA) file: compare them in grey
+        print(f"note: {args.frame1 if img1.ndim == 2 else args.frame2} is grey, the other frame colour: both are read as grey")
+        img1, img2 = read_image(args.frame1, "grey"), read_image(args.frame2, "grey")
     region = None
     if args.region:
         mask = read_image(args.region, "grey")
@@ -307,6 +315,37 @@ def _index_list(text: str) -> list[int]:
     return values
 
 
+def _object_ids(text: str):
+    """An argparse type: one object id, comma-separated distinct ids, or 'all'."""
+    if text.strip().lower() == "all":
+        return "all"
+    try:
+        values = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an object id, ids like 1,2 or 'all', got {text!r}") from None
+    if not values or any(v < 0 for v in values) or len(set(values)) != len(values):
+        raise argparse.ArgumentTypeError(f"expected distinct object ids ≥ 0, got {text!r}")
+    return values
+
+
+def _joint_ids(args, seq) -> list[int] | None:
+    """The objects of a joint run (--obj-id with several ids or 'all'), None for one object."""
+    ids = args.obj_id
+    if ids == "all":
+        view0 = seq.views[(args.cameras or [0])[0]] if seq.views else None
+        given = len(args.init_pose) if isinstance(args.init_pose, list) else 0
+        ids = [o for o in sorted(seq.model_paths) if given or (
+            view0 is not None and o in view0.T_cam_obj and np.all(np.isfinite(view0.T_cam_obj[o][0])))]
+        if given and len(ids) != given:
+            raise ValueError(f"--obj-id all: {seq.root} has {len(ids)} object(s) with a mesh, --init-pose was given {given} time(s)")
+        if not ids:
+            raise ValueError(f"--obj-id all: no object of {seq.root} has a mesh and a first pose in scene_gt.json")
+    if ids is None or len(ids) == 1:
+        args.obj_id = None if ids is None else ids[0]
+        return None
+    return list(ids)
+
+
 def read_init_pose(text: str, what: str = "--init-pose") -> np.ndarray:
     """A (4, 4) model → camera pose (mm) from a file or from 12 / 16 numbers on the command line.
 
@@ -391,10 +430,14 @@ def _prepare_tracking(args, seq, out):
     view0 = seq.views[views[0]]
     gt = view0.T_cam_obj.get(obj_id)
     init_pose = None
-    if isinstance(args.init_pose, np.ndarray):  # found from --init-points
-        init_pose = args.init_pose
-    elif args.init_pose is not None:
-        init_pose = read_init_pose(args.init_pose)  # model → the first tracked view's camera
+    given = args.init_pose[0] if isinstance(args.init_pose, list) else args.init_pose
+    if isinstance(args.init_pose, list) and len(args.init_pose) > 1:
+        raise ValueError(f"--init-pose given {len(args.init_pose)} times for one object; several objects need "
+                         "--obj-id with their ids (or --mesh once per object)")
+    if isinstance(given, np.ndarray):  # found from --init-points
+        init_pose = given
+    elif given is not None:
+        init_pose = read_init_pose(given)  # model → the first tracked view's camera
     elif gt is None or not np.all(np.isfinite(gt[0])):
         raise ValueError(f"{view0.folder / 'scene_gt.json'}: no pose of obj_id {obj_id} for the first frame; "
                          "give one with --init-pose")
@@ -441,6 +484,95 @@ def _prepare_tracking(args, seq, out):
               **({"working_shape": args.working_shape} if getattr(args, "working_shape", "default") != "default" else {}),
               **({"recovery": True} if getattr(args, "recover", False) else {})}
     return kwargs, recorder
+
+
+def _prepare_joint_tracking(args, seq, out, obj_ids: list[int]):
+    """As `_prepare_tracking` for several rigid objects tracked jointly (`track_objects`)."""
+    from jaxtrack.io import load_trimesh, prepare_output_file
+    from jaxtrack.track import JointOverlayRecorder, OverlayWriter
+
+    refused = [flag for flag, on in (("--reset-on-failure", args.reset_on_failure), ("--recover", getattr(args, "recover", False)),
+                                     ("--joint-limits", args.joint_limits),
+                                     ("--pose-prior", getattr(args, "pose_prior", None) is not None)) if on]
+    if refused:
+        raise ValueError(f"{', '.join(refused)}: not available when several objects are tracked together "
+                         f"(--obj-id {','.join(map(str, obj_ids))}); track one object for it")
+    n_views = len(seq.views)
+    views = list(range(n_views)) if args.cameras is None else args.cameras
+    bad = [c for c in views if c >= n_views]
+    if bad:
+        raise ValueError(f"--cameras: view {bad[0]} out of range: {seq.root} has {n_views} camera view(s) (0-{n_views - 1})")
+    missing = [o for o in obj_ids if o not in seq.model_paths]
+    if missing:
+        raise ValueError(f"--obj-id: object {missing[0]} has no mesh in {seq.root} (have {sorted(seq.model_paths)})")
+    view0 = seq.views[views[0]]
+    poses = args.init_pose if isinstance(args.init_pose, list) else ([] if args.init_pose is None else [args.init_pose])
+    if poses and len(poses) != len(obj_ids):
+        raise ValueError(f"--init-pose given {len(poses)} time(s) for {len(obj_ids)} objects ({','.join(map(str, obj_ids))}): "
+                         "one per object, in the same order")
+    init_poses = {}
+    for i, o in enumerate(obj_ids):
+        if seq.model_paths[o].suffix.lower() == ".urdf":
+            raise ValueError(f"--obj-id: object {o} is articulated ({seq.model_paths[o].name}); several objects are tracked "
+                             "rigid: track it alone")
+        if poses:
+            init_poses[o] = poses[i] if isinstance(poses[i], np.ndarray) else read_init_pose(poses[i], f"--init-pose ({i + 1})")
+        elif o not in view0.T_cam_obj or not np.all(np.isfinite(view0.T_cam_obj[o][0])):
+            raise ValueError(f"{view0.folder / 'scene_gt.json'}: no pose of obj_id {o} for the first frame; give one "
+                             "--init-pose per object")
+    prepare_output_file(out, "-o/--out", suffixes=(".csv",))
+    _check_writable(out, "-o/--out")
+    _check_writable(out.with_name(out.stem + ".frames.jsonl"), "-o/--out")
+    objects = []
+    for o in obj_ids:
+        tm = load_trimesh(seq.model_paths[o], seq.model_scale(o))  # an unreadable or empty mesh fails here, named
+        objects.append((tm.vertices, tm.faces))
+    recorder = None
+    if args.video is not None:
+        writer = OverlayWriter(args.video, (view0.height, view0.width * len(views)), fps=args.fps, what="--video")
+        recorder = JointOverlayRecorder(writer, objects, np.stack([seq.views[c].K for c in views]),
+                                        names=[f"obj {o}" for o in obj_ids])
+    kwargs = {"cues": args.cues, "cameras": views, "init_poses": init_poses or None, "max_frames": args.max_frames,
+              "progress": not args.quiet, "on_frame": recorder,
+              **({"region": args.region} if getattr(args, "region", None) is not None else {}),
+              **({"working_shape": args.working_shape} if getattr(args, "working_shape", "default") != "default" else {})}
+    return kwargs, recorder
+
+
+def _track_joint(args, seq, out, obj_ids: list[int]):
+    """Track several objects of `seq` jointly, write one CSV (rows per object) and the overlay."""
+    from jaxtrack.track import track_objects, write_tracking_results
+
+    kwargs, recorder = _prepare_joint_tracking(args, seq, out, obj_ids)
+    if not args.no_cache:
+        enable_compilation_cache()
+    try:
+        runs = track_objects(seq, obj_ids, **kwargs)
+    finally:
+        if recorder is not None:
+            recorder.writer.close()
+    csv, jsonl = write_tracking_results(runs, out)
+    return runs, csv, jsonl, recorder
+
+
+def _joint_summary(runs, seq, cues, csv, jsonl, recorder) -> None:
+    from collections import Counter
+
+    print(f"tracked {len(runs[0].frame_ids)} frame(s) of {seq.root}: {len(runs)} objects jointly "
+          f"(view(s) {','.join(map(str, runs[0].camera_ids))}, cues {'+'.join(cues)})")
+    steady = [sum(r.timings[k].get("total_s", 0.0) + r.timings[k].get("occluders_s", 0.0) for r in runs)
+              for k in range(2, len(runs[0].frame_ids))]
+    if steady:
+        med = float(np.median(steady))
+        print(f"time: first frame (set-up) {sum(r.timings[0]['total_s'] for r in runs):.1f} s; other frames {med:.2f} s "
+              f"median for all objects ({1.0 / med:.1f} frames/s)")
+    for r in runs:
+        counts = Counter(r.status)
+        print(f"obj {r.obj_id}: " + ", ".join(f"{k} {v}" for k, v in counts.most_common()))
+    print(f"results -> {csv} (+ {jsonl.name}; one row per object and frame; jaxtrack eval --obj-id picks one)")
+    if recorder is not None:
+        kind = "video" if recorder.writer.is_video else "PNG folder"
+        print(f"overlay {kind} -> {recorder.writer.path} ({recorder.writer.count} frames, one colour per object)")
 
 
 def _track(args, seq, out):
@@ -491,8 +623,9 @@ def _tracking_summary(run, seq, cues, csv, jsonl, recorder) -> None:
 
 
 def _own_footage(args):
-    """The `Sequence` of a video file or image folder (--mesh, --camera), and the first pose from --init-points
-    (printed with its reprojection error) unless --init-pose gives it. Everything checked before compiling."""
+    """The `Sequence` of a video file or image folder (--mesh, --camera), and the first pose(s) from --init-points
+    (printed with its reprojection error) unless --init-pose gives it; one --init-* per --mesh (objects 1, 2, ...).
+    Everything checked before compiling."""
     from jaxtrack.io import own_sequence, pose_from_points, read_init_points
 
     missing = [flag for flag, value in (("--mesh", args.mesh), ("--camera", args.camera)) if not value]
@@ -502,20 +635,34 @@ def _own_footage(args):
     if args.init_points is None and args.init_pose is None:
         raise ValueError(f"{args.sequence}: your own footage needs the first pose: --init-points POINTS (≥ 4 clicked image "
                          "points with their model points; `jaxtrack pick` writes the file) or --init-pose POSE")
+    if args.init_points is not None and args.init_pose is not None:
+        raise ValueError("--init-pose and --init-points: give one of them (one kind for every --mesh)")
     if args.reset_on_failure:
         raise ValueError("--reset-on-failure: your own footage has no ground truth to reset to")
-    seq = own_sequence(args.sequence, args.mesh, args.camera, args.mesh_unit)
-    if args.init_pose is None:
+    if args.obj_id is not None:
+        raise ValueError("--obj-id: your own footage numbers its objects 1, 2, ... in the order of --mesh")
+    meshes = list(args.mesh)
+    firsts = args.init_points if args.init_points is not None else args.init_pose
+    if len(firsts) != len(meshes):
+        flag = "--init-points" if args.init_points is not None else "--init-pose"
+        raise ValueError(f"--mesh given {len(meshes)} time(s), {flag} {len(firsts)} time(s): one first pose per mesh, "
+                         "in the same order")
+    seq = own_sequence(args.sequence, meshes if len(meshes) > 1 else meshes[0], args.camera, args.mesh_unit)
+    if args.init_points is not None:
         view = seq.views[0]
-        image_points, model_points = read_init_points(args.init_points)
-        found = pose_from_points(image_points, model_points, view.K, view.calibration.dist, seq.model_scale(1),
-                                 what=f"--init-points {args.init_points}")
-        used = int(found.inliers.sum())
-        print(f"first pose from {len(image_points)} points ({used} inliers): reprojection {found.rms_px:.2f} px RMS, "
-              f"{found.max_px:.2f} px at most")
-        args.init_pose = found.T_cam_obj
-    elif args.init_points is not None:
-        raise ValueError("--init-pose and --init-points: give one of them")
+        poses = []
+        for o, points in enumerate(args.init_points, 1):
+            image_points, model_points = read_init_points(points)
+            found = pose_from_points(image_points, model_points, view.K, view.calibration.dist, seq.model_scale(o),
+                                     what=f"--init-points {points}")
+            used = int(found.inliers.sum())
+            label = f" of object {o} ({meshes[o - 1]})" if len(meshes) > 1 else ""
+            print(f"first pose{label} from {len(image_points)} points ({used} inliers): reprojection {found.rms_px:.2f} px "
+                  f"RMS, {found.max_px:.2f} px at most")
+            poses.append(found.T_cam_obj)
+        args.init_pose = poses
+    if len(meshes) > 1:
+        args.obj_id = list(range(1, len(meshes) + 1))
     return seq
 
 
@@ -541,6 +688,11 @@ def _cmd_track(args) -> int:
     else:
         seq = _own_footage(args)
     out = pathlib.Path(args.out) if args.out else pathlib.Path(f"{seq.root.resolve().stem}-results.csv")
+    obj_ids = _joint_ids(args, seq)
+    if obj_ids is not None:
+        runs, csv, jsonl, recorder = _track_joint(args, seq, out, obj_ids)
+        _joint_summary(runs, seq, args.cues, csv, jsonl, recorder)
+        return 0
     run, csv, jsonl, recorder = _track(args, seq, out)
     _tracking_summary(run, seq, args.cues, csv, jsonl, recorder)
     return 0
@@ -845,14 +997,16 @@ def build_parser() -> argparse.ArgumentParser:
                        "of images, with --mesh, --camera and --init-points or --init-pose")
     track.add_argument("-o", "--out", help="results CSV (default: ./<INPUT name>-results.csv)")
     own = track.add_argument_group("your own video or image folder")
-    own.add_argument("--mesh", help="the object's mesh (any file trimesh reads: .ply, .obj, .stl, .glb, .off)")
+    own.add_argument("--mesh", action="append",
+                     help="the object's mesh (any file trimesh reads: .ply, .obj, .stl, .glb, .off); repeat it with one "
+                     "--init-points (or --init-pose) each to track several objects jointly (objects 1, 2, ... in that order)")
     own.add_argument("--mesh-unit", dest="mesh_unit", choices=("mm", "cm", "m"), default="mm",
                      help="the mesh's length unit (default mm)")
     own.add_argument("--camera", metavar="CALIB",
                      help="OpenCV calibration file (.yaml/.yml/.xml with camera_matrix, distortion_coefficients, "
                      "image_width, image_height, as cv2.FileStorage writes) or a .json with K and dist; frames are "
                      "undistorted as they are read")
-    own.add_argument("--init-points", dest="init_points", metavar="POINTS",
+    own.add_argument("--init-points", dest="init_points", metavar="POINTS", action="append",
                      help='first pose from ≥ 4 clicked points: a .json {"image_points": [[u, v], ...], "model_points": '
                      '[[x, y, z], ...]} (pixels of the first frame; mesh units) or a .csv of rows u,v,x,y,z; PnP (RANSAC '
                      'beyond 4 points) refined by jaxtrack\'s solver; refused when it reprojects worse than 4 px RMS. '
@@ -860,7 +1014,9 @@ def build_parser() -> argparse.ArgumentParser:
     track.add_argument("--cues", type=_cue_list, default=CUE_CHOICES, help="comma-separated modalities: region (the configured region modality), flow, sift, levelset or any "
                        "registered modality (default region,flow,sift)")
     track.add_argument("--cameras", type=_index_list, help="comma-separated camera views, e.g. 0,1 (default all)")
-    track.add_argument("--obj-id", dest="obj_id", type=_number(int, 0), help="the object (default: the smallest id with a mesh)")
+    track.add_argument("--obj-id", dest="obj_id", type=_object_ids,
+                       help="the object (default: the smallest id with a mesh); several, comma-separated (1,2), or 'all' "
+                       "(every object with a first pose): tracked jointly, each hiding the others' lines (rigid only)")
     track.add_argument("--video", help="overlay: an .mp4/.avi/.mov/.mkv file, or else a folder of PNGs (views side by side)")
     track.add_argument("--fps", type=_number(float, 0, low_open=True), default=10.0, help="overlay video frame rate (default 10)")
     track.add_argument("--reset-on-failure", dest="reset_on_failure", action="store_true",
@@ -869,9 +1025,10 @@ def build_parser() -> argparse.ArgumentParser:
                        help="after a LOST frame, search for the object (SIFT keyframes + PnP) and restart from what is "
                        "found (status RECOVERED); rigid objects with the line modality; off by default "
                        "(experiments/results/recovery.md)")
-    track.add_argument("--init-pose", dest="init_pose", metavar="POSE",
+    track.add_argument("--init-pose", dest="init_pose", metavar="POSE", action="append",
                        help="first pose, model → first view's camera (mm), instead of scene_gt.json's (or of --init-points): "
-                       "a .npy/.json/.txt file or 12 (3x4) / 16 (4x4) numbers, row-major, comma-separated")
+                       "a .npy/.json/.txt file or 12 (3x4) / 16 (4x4) numbers, row-major, comma-separated; once per "
+                       "object when several are tracked")
     track.add_argument("--max-frames", dest="max_frames", metavar="N", type=_number(int, 1), help="track only the first N frames")
     track.add_argument("--joint-limits", dest="joint_limits", action="store_true",
                        help="articulated (URDF) models: keep the joints within the URDF's limits (off: the method uses no priors)")

@@ -279,29 +279,35 @@ def is_bop_folder(path: str | os.PathLike) -> bool:
     return path.is_dir() and (path / "models").is_dir()
 
 
-def own_sequence(source: str | os.PathLike, mesh: str | os.PathLike, calibration: str | os.PathLike | CameraCalibration,
+def own_sequence(source: str | os.PathLike, mesh: str | os.PathLike | list, calibration: str | os.PathLike | CameraCalibration,
                  mesh_unit: str = "mm") -> Sequence:
-    """A one-camera `Sequence` (object id 1, no ground truth) from a video file or a folder of images.
+    """A one-camera `Sequence` (object id 1, or 1..N for N meshes; no ground truth) from a video file or a folder
+    of images.
 
     Args:
         source: a video file OpenCV can decode, or a folder of images (sorted by name, numbers in order).
-        mesh: any mesh file trimesh reads. mesh_unit: its length unit, "mm" (default), "cm" or "m"
-            (the tracker works in millimetres; `Sequence.model_scales` carries the factor).
+        mesh: any mesh file trimesh reads, or a list of them (objects 1, 2, ... in that order). mesh_unit: their
+            length unit, "mm" (default), "cm" or "m" (the tracker works in millimetres; `Sequence.model_scales`
+            carries the factor).
         calibration: a calibration file (`read_calibration`) or a `CameraCalibration`.
 
     Raises:
         FileNotFoundError / SequenceError / ValueError: naming the file and what is wrong with it.
     """
-    source, mesh = pathlib.Path(source), pathlib.Path(mesh)
+    source = pathlib.Path(source)
+    meshes = [pathlib.Path(m) for m in (mesh if isinstance(mesh, list | tuple) else [mesh])]
     if mesh_unit not in MESH_UNITS:
         raise ValueError(f"--mesh-unit: one of {', '.join(MESH_UNITS)}, got {mesh_unit!r}")
-    if not mesh.is_file():
-        raise FileNotFoundError(f"{mesh}: mesh file not found" + (" (it is a folder)" if mesh.is_dir() else ""))
-    if mesh.suffix.lower() == ".urdf":
-        raise ValueError(f"{mesh}: articulated models (URDF) are tracked from BOP folders (scene_gt.json gives the first "
-                         "joint values); give a rigid mesh here")
-    if mesh.suffix.lower() not in MODEL_SUFFIXES:
-        raise ValueError(f"{mesh}: not a mesh file trimesh reads ({', '.join(MODEL_SUFFIXES[:-1])})")
+    if not meshes:
+        raise ValueError("own_sequence: mesh must name at least one mesh file")
+    for path in meshes:
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: mesh file not found" + (" (it is a folder)" if path.is_dir() else ""))
+        if path.suffix.lower() == ".urdf":
+            raise ValueError(f"{path}: articulated models (URDF) are tracked from BOP folders (scene_gt.json gives the first "
+                             "joint values); give a rigid mesh here")
+        if path.suffix.lower() not in MODEL_SUFFIXES:
+            raise ValueError(f"{path}: not a mesh file trimesh reads ({', '.join(MODEL_SUFFIXES[:-1])})")
     calib = calibration if isinstance(calibration, CameraCalibration) else read_calibration(calibration)
     if source.is_dir():
         files = _image_files(source)
@@ -330,7 +336,8 @@ def own_sequence(source: str | os.PathLike, mesh: str | os.PathLike, calibration
     view = VideoView(folder=source if source.is_dir() else source.parent, frame_paths=list(frame_paths), K=calib.K.copy(),
                      T_cam_world=np.eye(4), T_cam_obj={}, width=int(width), height=int(height), frame_ids=list(range(n)),
                      calibration=calib, video=video)
-    return Sequence(source, {1: mesh}, [view], model_scales={1: MESH_UNITS[mesh_unit]})
+    return Sequence(source, {o: m for o, m in enumerate(meshes, 1)}, [view],
+                    model_scales={o: MESH_UNITS[mesh_unit] for o in range(1, len(meshes) + 1)})
 
 
 # ------------------------------------------------------------------------------------ the first pose
@@ -502,6 +509,9 @@ def check_first_pose(vertices_mm, K, width: int, height: int, T_cam_obj, what: s
             raise ValueError(f"{what}: the mesh spans {size:.4g} mm but models_info.json gives a diameter of {diameter_mm:.4g} mm: "
                              f"a mesh in other units? (--mesh-unit m|cm|mm)")
     centre_cam = T[:3, :3] @ ((lo + hi) / 2) + T[:3, 3]
+    if centre_cam[2] <= 0 and np.linalg.norm(centre_cam) >= size / 2:
+        raise ValueError(f"{what}: the pose puts the object behind the camera (its centre at depth {centre_cam[2]:.4g} mm; "
+                         f"translation z = {T[2, 3]:.4g} mm must be positive)")
     if np.any(p[:, 2] <= 0) or np.linalg.norm(centre_cam) < size / 2:
         raise ValueError(f"{what}: the camera is inside the model or part of the model is behind it (the mesh spans "
                          f"{size:.4g} mm, its centre is {np.linalg.norm(centre_cam):.4g} mm from the camera): a mesh in "

@@ -61,6 +61,8 @@ class FrameContext(eqx.Module):
         pose_t: the pose at t.
         prepared: what this modality's `prepare` made once per tracker (e.g. a sparse viewpoint model);
             the tracker hands each modality its own.
+        occluder_depth: (C, H, W) full-frame depth (mm) of the other objects of a joint run (`JointTracker`)
+            at their latest poses, min-filtered over a few pixels, inf where none; None when tracking one object.
     """
 
     mesh: Mesh
@@ -78,6 +80,7 @@ class FrameContext(eqx.Module):
     plan: RasterPlan = eqx.field(static=True)
     prepared: Any = None
     scales: jax.Array | None = None
+    occluder_depth: jax.Array | None = None
 
     @property
     def num_cameras(self) -> int:
@@ -100,7 +103,7 @@ class StartContext(eqx.Module):
     """What a modality sees at the first frame, whose pose is known (`Modality.init_state`).
 
     Attributes: as `FrameContext` (frames and crops of the first frame, render at the known pose,
-    this modality's prepared data).
+    this modality's prepared data, the other objects' depth of a joint run).
     """
 
     mesh: Mesh
@@ -115,6 +118,7 @@ class StartContext(eqx.Module):
     plan: RasterPlan = eqx.field(static=True)
     prepared: Any = None
     scales: jax.Array | None = None
+    occluder_depth: jax.Array | None = None
 
 
 def _per_camera(points, offsets, scales):

@@ -9,6 +9,8 @@ from ._evaluate import model_diameter as model_diameter
 from ._evaluate import pose_errors as pose_errors
 from ._evaluate import precision_recall as precision_recall
 from ._evaluate import success_mask as success_mask
+from ._joint import JointTracker as JointTracker
+from ._overlay import JointOverlayRecorder as JointOverlayRecorder
 from ._overlay import OverlayRecorder as OverlayRecorder
 from ._overlay import OverlayWriter as OverlayWriter
 from ._overlay import overlay_frame as overlay_frame
@@ -20,6 +22,7 @@ from ._sequence import TrackingEvaluation as TrackingEvaluation
 from ._sequence import TrackingRun as TrackingRun
 from ._sequence import evaluate_tracking as evaluate_tracking
 from ._sequence import read_joint_results as read_joint_results
+from ._sequence import track_objects as track_objects
 from ._sequence import track_sequence as track_sequence
 from ._sequence import write_joint_results as write_joint_results
 from ._sequence import write_tracking_results as write_tracking_results

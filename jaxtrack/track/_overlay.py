@@ -288,3 +288,55 @@ class OverlayRecorder:
         text = f"frame {record.im_id}  {record.status}  conf {record.confidence:.2f}" + ("  RESET" if record.reset else "")
         self.writer.write(overlay_frame(record.images, p_cam, self.faces, self.K, self.dist, record.region_phi,
                                         record.offsets, text, thickness, record.scales))
+
+
+# Per-object contour colours of a joint run (RGB): green first (the single-object colour), then distinct hues.
+OBJECT_COLOURS = (MODEL_COLOUR, (255, 160, 0), (0, 200, 255), (255, 0, 255), (255, 255, 0), (160, 80, 255))
+
+
+class JointOverlayRecorder:
+    """A `track_objects(on_frame=...)` callback: every object's model contour in its own colour
+    (`OBJECT_COLOURS`, in the order of the objects), their statuses on top.
+
+    Args:
+        writer: an `OverlayWriter` (or anything with `write(frame)`).
+        objects: per object (vertices (V, 3) model mm, faces (F, 3)).
+        K: (C, 3, 3) intrinsics of the tracked cameras; dist: (C, 5) or None.
+        names: per object the label of the status line (default "obj 1", "obj 2", ...).
+        thickness: line width; None: 2 for a video or frames from 400 px wide, else 1.
+    """
+
+    def __init__(self, writer: OverlayWriter, objects: list, K: npt.ArrayLike, dist: npt.ArrayLike | None = None,
+                 names: list[str] | None = None, thickness: int | None = None):
+        self.writer = writer
+        self.objects = [(np.asarray(v, np.float64), np.asarray(f, np.int64)) for v, f in objects]
+        self.K = np.asarray(K, np.float64)
+        self.dist = None if dist is None else np.asarray(dist, np.float64)
+        self.names = [f"obj {i + 1}" for i in range(len(self.objects))] if names is None else list(names)
+        self.thickness = thickness
+
+    def __call__(self, records: list[FrameRecord]) -> None:
+        if len(records) != len(self.objects):
+            raise ValueError(f"JointOverlayRecorder: {len(records)} record(s) for {len(self.objects)} object(s)")
+        images = np.asarray(records[0].images)
+        if images.ndim == 3:
+            images = np.repeat(images[..., None], 3, axis=-1)
+        C, H, W = images.shape[:3]
+        thickness = self.thickness
+        if thickness is None:
+            thickness = 2 if getattr(self.writer, "is_video", False) or W >= 400 else 1
+        K = np.broadcast_to(self.K, (C, 3, 3))
+        tiles = []
+        for c in range(C):
+            tile = np.ascontiguousarray(np.clip(images[c], 0, 255).astype(np.uint8))
+            for i, ((vertices, faces), rec) in enumerate(zip(self.objects, records)):
+                T = np.asarray(rec.T_cam_obj, np.float64)[c]
+                mask = model_mask(vertices @ T[:3, :3].T + T[:3, 3], faces, K[c], (H, W),
+                                  None if self.dist is None else self.dist[c])
+                draw_contour(tile, mask, OBJECT_COLOURS[i % len(OBJECT_COLOURS)], thickness)
+            tiles.append(tile)
+        out = np.concatenate(tiles, axis=1)
+        text = f"frame {records[0].im_id}  " + "  ".join(f"{n} {r.status} {r.confidence:.2f}"
+                                                          for n, r in zip(self.names, records))
+        draw_text(out, text)
+        self.writer.write(out)

@@ -308,6 +308,166 @@ def track_sequence(
     )
 
 
+def track_objects(
+    sequence,
+    obj_ids: list[int] | None = None,
+    *,
+    cues: tuple[str, ...] = ("region", "flow", "sift"),
+    cameras: list[int] | None = None,
+    config: TrackerConfig | None = None,
+    init_poses: dict | None = None,
+    region: str | None = None,
+    working_shape: tuple[int, int] | None | str = "default",
+    pose_prior: tuple | None = None,
+    max_frames: int | None = None,
+    progress: bool = True,
+    on_frame: Callable[[list[FrameRecord]], object] | None = None,
+) -> list[TrackingRun]:
+    """Track several rigid objects of one BOP-layout sequence jointly (`JointTracker`): each object's lines
+    leave out what the others hide, its flow and SIFT the pixels they cover; each has its own status.
+
+    Args:
+        sequence: a `jaxtrack.io.Sequence` (or a path to one).
+        obj_ids: the objects (default: every object with a mesh and a pose in the first frame's scene_gt.json).
+        init_poses: {obj_id: (4, 4) model → camera-0 pose of the first frame} (default: the ground truth).
+        on_frame: called after every frame with one `FrameRecord` per object (in `obj_ids` order).
+        cues, cameras, config, region, working_shape, pose_prior, max_frames, progress: as `track_sequence`.
+
+    Returns:
+        one `TrackingRun` per object, in `obj_ids` order.
+
+    Raises:
+        ValueError: an unknown or repeated object, an articulated one (joint runs are rigid), no first pose,
+            a mesh whose unit does not fit its first pose.
+    """
+    from ..io import Sequence, check_first_pose, load_mesh, read_sequence
+    from ._joint import JointTracker
+
+    seq = sequence if isinstance(sequence, Sequence) else read_sequence(sequence)
+    views = list(range(len(seq.views))) if cameras is None else [int(c) for c in cameras]
+    if not views or any(c < 0 or c >= len(seq.views) for c in views) or len(set(views)) != len(views):
+        raise ValueError(f"cameras must be distinct view indices in [0, {len(seq.views)}), got {cameras}")
+    view0 = seq.views[views[0]]
+    init_poses = {} if init_poses is None else {int(k): v for k, v in init_poses.items()}
+    if obj_ids is None:
+        obj_ids = [o for o in sorted(seq.model_paths)
+                   if o in init_poses or (o in view0.T_cam_obj and np.all(np.isfinite(view0.T_cam_obj[o][0])))]
+    obj_ids = [int(o) for o in obj_ids]
+    if not obj_ids or len(set(obj_ids)) != len(obj_ids):
+        raise ValueError(f"obj_ids must name distinct objects of {seq.root}, got {obj_ids}")
+    unknown = [o for o in obj_ids if o not in seq.model_paths]
+    if unknown:
+        raise ValueError(f"obj_id {unknown[0]} has no mesh in {seq.root}/models (have {sorted(seq.model_paths)})")
+    if max_frames is not None and int(max_frames) < 1:
+        raise ValueError(f"max_frames must be ≥ 1, got {max_frames}")
+    n = seq.num_frames if max_frames is None else min(seq.num_frames, int(max_frames))
+    rig = stack_cameras([
+        make_camera(seq.views[c].K, seq.views[c].width, seq.views[c].height, seq.views[c].T_cam_world[:3, :3],
+                    seq.views[c].T_cam_world[:3, 3])
+        for c in views
+    ])
+    T_cam0_world = np.asarray(view0.T_cam_world, np.float64)
+    if config is None:
+        extra = {} if region is None else {"region_modality": region}
+        if not (isinstance(working_shape, str) and working_shape == "default"):
+            extra["working_shape"] = None if working_shape is None else tuple(int(v) for v in working_shape)
+        config = TrackerConfig(cues=tuple(cues), **extra)
+    trackers, starts = [], []
+    for o in obj_ids:
+        path = seq.model_paths[o]
+        if path.suffix.lower() == ".urdf":
+            raise ValueError(f"obj_id {o}: {path.name} is articulated; several objects are tracked rigid (track it alone)")
+        source = f"init_poses[{o}]" if o in init_poses else f"{view0.folder / 'scene_gt.json'}: frame 0, obj_id {o}"
+        if o in init_poses:
+            T0 = np.asarray(init_poses[o], np.float64)
+            if T0.shape != (4, 4):
+                raise ValueError(f"{source} must be (4, 4), got {T0.shape}")
+        else:
+            gt = view0.T_cam_obj.get(o)
+            if gt is None or not np.all(np.isfinite(gt[0])):
+                raise ValueError(f"{view0.folder}/scene_gt.json has no pose of obj_id {o} in the first frame; pass init_poses")
+            T0 = gt[0]
+        mesh = load_mesh(path, seq.model_scale(o))
+        check_first_pose(np.asarray(mesh.vertices, np.float64), view0.K, view0.width, view0.height, T0, source,
+                         diameter_mm=_info_diameter(seq, o))
+        trackers.append(Tracker(mesh, rig, config=config, **({} if pose_prior is None else {"pose_prior": pose_prior})))
+        starts.append(np.linalg.inv(T_cam0_world) @ T0)
+    joint = JointTracker(trackers)
+    T_cam_world = np.stack([np.asarray(seq.views[c].T_cam_world, np.float64) for c in views])
+
+    def frames(k):
+        return np.stack([seq.views[c].read_frame(k, dtype=None) for c in views])
+
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=n, desc=f"tracking {len(obj_ids)} objects", unit="frame")
+    N = len(obj_ids)
+    poses = [[] for _ in range(N)]
+    status = [[] for _ in range(N)]
+    conf = [[] for _ in range(N)]
+    counts = [[] for _ in range(N)]
+    timings = [[] for _ in range(N)]
+    crops = [[] for _ in range(N)]
+
+    def report(k, images, results=None, infos=None):
+        if on_frame is None:
+            return
+        records = []
+        for i in range(N):
+            T = poses[i][-1]
+            has_crop = results is not None and infos[i].get("offsets") is not None
+            records.append(FrameRecord(
+                index=k, im_id=int(view0.frame_ids[k]), images=images, T_world_root=T,
+                T_cam_obj=np.einsum("cij,jk->cik", T_cam_world, T), status=status[i][-1], confidence=conf[i][-1],
+                region_phi=np.asarray(results[i].region_phi) if has_crop else None,
+                offsets=np.asarray(infos[i]["offsets"]) if has_crop else None, reset=False, theta=np.zeros(0),
+                scales=None if not has_crop or infos[i].get("scales") is None else np.asarray(infos[i]["scales"]),
+            ))
+        on_frame(records)
+
+    t0 = time.perf_counter()
+    images = frames(0)
+    states = joint.start(images, starts)
+    for i in range(N):
+        poses[i].append(np.asarray(states[i].T_world_root, np.float64))
+        status[i].append(Status.OK.name)
+        conf[i].append(1.0)
+        counts[i].append(np.zeros((len(views), len(config.cues)), np.int64))
+        timings[i].append({"total_s": (time.perf_counter() - t0) / N})
+        crops[i].append(None)
+    report(0, images)
+    if bar is not None:
+        bar.update(1)
+    for k in range(1, n):
+        t0 = time.perf_counter()
+        images = frames(k)
+        read_s = time.perf_counter() - t0
+        states, results, infos = joint.step(states, images)
+        for i, (result, info) in enumerate(zip(results, infos)):
+            poses[i].append(np.asarray(result.T_world_root, np.float64))
+            status[i].append(Status(int(result.status)).name)
+            conf[i].append(float(result.confidence))
+            counts[i].append(np.asarray(result.counts))
+            info["timings"]["read_s"] = read_s / N
+            timings[i].append(info["timings"])
+            crops[i].append(None if info.get("crop_shape") is None else tuple(int(v) for v in info["crop_shape"]))
+        report(k, images, results, infos)
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(status="/".join(s[-1] for s in status))
+    if bar is not None:
+        bar.close()
+    joint.join_background()
+    return [TrackingRun(
+        frame_ids=list(view0.frame_ids[:n]), obj_id=o, T_world_root=np.stack(poses[i]), theta=np.zeros((n, 0)),
+        T_cam_world=T_cam_world, camera_ids=views, status=status[i], confidence=np.asarray(conf[i]),
+        counts=np.stack(counts[i]), timings=timings[i], reset=np.zeros(n, bool), crops=crops[i], lost_joints=[[]] * n,
+        cue_names=config.cue_names,
+    ) for i, o in enumerate(obj_ids)]
+
+
 def _articulated(model_path: pathlib.Path, view0, obj_id: int, init_joints: dict | None, n: int) -> dict:
     """Read a URDF model and its first-frame joint values (URDF units) → model-unit Θ0 and ground truth."""
     from ..io import read_urdf
@@ -335,10 +495,13 @@ def _articulated(model_path: pathlib.Path, view0, obj_id: int, init_joints: dict
             "child_part": np.asarray(art.model.joint_child_part)}
 
 
-def write_tracking_results(run: TrackingRun, path: str | os.PathLike) -> tuple[pathlib.Path, pathlib.Path]:
-    """The BOP results CSV (one row per frame and camera view: scene_id = view index) and, beside it,
+def write_tracking_results(run: TrackingRun | list[TrackingRun], path: str | os.PathLike) -> tuple[pathlib.Path, pathlib.Path]:
+    """The BOP results CSV (one row per frame, camera view and object: scene_id = view index) and, beside it,
     NAME.frames.jsonl with the status, confidence, counts per cue and camera, timings, reset flag and the
     step's crop size class.
+
+    `run` may be a list of runs of the same frames (`track_objects`): their rows share the CSV, and each
+    record of NAME.frames.jsonl names its "obj_id".
 
     For an articulated run, NAME.joints.csv too: `scene_id,im_id,obj_id,<joint names>`, one row per
     frame, values in URDF units (radians, metres).
@@ -351,27 +514,35 @@ def write_tracking_results(run: TrackingRun, path: str | os.PathLike) -> tuple[p
     path = pathlib.Path(path)
     if path.suffix.lower() != ".csv":
         raise ValueError(f"results path must end in .csv, got {path}")
+    runs = list(run) if isinstance(run, list | tuple) else [run]
+    if not runs:
+        raise ValueError("write_tracking_results: no run to write")
+    if len(runs) > 1 and any(r.joint_names for r in runs):
+        raise ValueError("write_tracking_results: several runs are written together only when rigid")
     rows = []
-    for ci, c in enumerate(run.camera_ids):
-        T_co = run.T_cam_obj(ci)
-        for k, im_id in enumerate(run.frame_ids):
-            rows.append((c, im_id, run.obj_id, run.confidence[k], T_co[k], run.timings[k].get("total_s", 0.0)))
+    for r in runs:
+        for ci, c in enumerate(r.camera_ids):
+            T_co = r.T_cam_obj(ci)
+            for k, im_id in enumerate(r.frame_ids):
+                rows.append((c, im_id, r.obj_id, r.confidence[k], T_co[k], r.timings[k].get("total_s", 0.0)))
     csv = write_bop_results(path, rows)
     jsonl = path.with_name(path.stem + ".frames.jsonl")
     with jsonl.open("w") as f:
-        for k, im_id in enumerate(run.frame_ids):
-            counts = {
-                str(c): {name: int(run.counts[k, ci, j]) for j, name in enumerate(run.cue_names)}
-                for ci, c in enumerate(run.camera_ids)
-            }
-            f.write(json.dumps({
-                "im_id": int(im_id), "status": run.status[k], "confidence": float(run.confidence[k]), "counts": counts,
-                "timings": {key: round(float(v), 6) for key, v in run.timings[k].items()}, "reset": bool(run.reset[k]),
-                "crop": None if run.crops is None or run.crops[k] is None else list(run.crops[k]),
-                **({"lost_joints": run.lost_joints[k]} if run.joint_names and run.lost_joints else {}),
-            }) + "\n")
-    if run.joint_names:
-        write_joint_results(path.with_name(path.stem + ".joints.csv"), run)
+        for r in runs:
+            for k, im_id in enumerate(r.frame_ids):
+                counts = {
+                    str(c): {name: int(r.counts[k, ci, j]) for j, name in enumerate(r.cue_names)}
+                    for ci, c in enumerate(r.camera_ids)
+                }
+                f.write(json.dumps({
+                    "im_id": int(im_id), **({"obj_id": int(r.obj_id)} if len(runs) > 1 else {}),
+                    "status": r.status[k], "confidence": float(r.confidence[k]), "counts": counts,
+                    "timings": {key: round(float(v), 6) for key, v in r.timings[k].items()}, "reset": bool(r.reset[k]),
+                    "crop": None if r.crops is None or r.crops[k] is None else list(r.crops[k]),
+                    **({"lost_joints": r.lost_joints[k]} if r.joint_names and r.lost_joints else {}),
+                }) + "\n")
+    if len(runs) == 1 and runs[0].joint_names:
+        write_joint_results(path.with_name(path.stem + ".joints.csv"), runs[0])
     return csv, jsonl
 
 
@@ -454,8 +625,9 @@ class TrackingEvaluation:
 MAX_EVAL_POINTS = 4000  # ADD-S is O(N²) per frame: larger meshes are subsampled (deterministically)
 
 
-def _frames_jsonl(path: pathlib.Path, im_ids: list) -> tuple[list | None, np.ndarray | None]:
-    """Status and reset flag per image id from NAME.frames.jsonl (None, None when the file is absent)."""
+def _frames_jsonl(path: pathlib.Path, im_ids: list, obj_id: int | None = None) -> tuple[list | None, np.ndarray | None]:
+    """Status and reset flag per image id from NAME.frames.jsonl (None, None when the file is absent); records
+    that name another "obj_id" (a joint run's file) are skipped."""
     if not path.is_file():
         return None, None
     by_id = {}
@@ -464,6 +636,8 @@ def _frames_jsonl(path: pathlib.Path, im_ids: list) -> tuple[list | None, np.nda
             continue
         try:
             rec = json.loads(line)
+            if obj_id is not None and "obj_id" in rec and int(rec["obj_id"]) != obj_id:
+                continue
             by_id[int(rec["im_id"])] = (str(rec["status"]), bool(rec.get("reset", False)))
         except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
             raise ValueError(f"{path}:{n}: malformed frame record ({e})") from e
@@ -569,7 +743,7 @@ def evaluate_tracking(results, sequence, *, obj_id: int | None = None, camera: i
         rot[has_gt], trans[has_gt] = pose_errors(T_est[has_gt], T_gt[has_gt])
         add[has_gt] = add_error(T_est[has_gt], T_gt[has_gt], points)
         adds[has_gt] = adds_error(T_est[has_gt], T_gt[has_gt], points)
-    status, reset = _frames_jsonl(path.with_name(path.stem + ".frames.jsonl"), im_ids)
+    status, reset = _frames_jsonl(path.with_name(path.stem + ".frames.jsonl"), im_ids, int(obj_id))
     return TrackingEvaluation(
         im_ids=np.asarray(im_ids), camera=camera, obj_id=int(obj_id), rot_deg=rot, trans_mm=trans, add_mm=add, adds_mm=adds,
         diameter_mm=_diameter(seq, obj_id, tm), has_gt=has_gt, initial=k == 0,

@@ -330,6 +330,9 @@ class TrackerState(eqx.Module):
         appearance: the appearance model f of the occlusion detection.
         modalities: one state per configured modality (`TrackerConfig.modalities()` order), e.g. the
             level set's `RegionState` (last segmentation and local densities).
+        occluder_depth: (C, H, W) depth (mm) of the other objects of a joint run at their latest poses
+            (`JointTracker` sets it before each step; inf where none), None when one object is tracked; the
+            line modality leaves out the lines it hides (`FrameContext.occluder_depth`).
     """
 
     T_world_root: jax.Array
@@ -339,6 +342,7 @@ class TrackerState(eqx.Module):
     visible: jax.Array
     appearance: AppearanceModel
     modalities: tuple
+    occluder_depth: jax.Array | None = None
 
 
 class FrameResult(eqx.Module):
@@ -430,7 +434,7 @@ def frame_context(setup: TrackerSetup, state: TrackerState, frames, offsets, cro
         mesh=setup.mesh, model=setup.model, cameras=setup.cameras, crop_cameras=cams, offsets=offsets,
         frames=frames, crops=crops, previous=previous, previous_crops=previous_crops,
         data_weight=data_weight_crops, render_t=None, pose_t=Pose(state.T_world_root, state.theta), plan=setup.window_plan,
-        scales=scales,
+        scales=scales, occluder_depth=state.occluder_depth,
     )
     if not any(m.needs_render_t for m in setup.config.modalities()):
         return ctx
@@ -658,7 +662,7 @@ def track_step(
     if fused is not None:
         counts = jnp.stack([_counts(fused, num_cams, m.cue) for m in modalities], -1).astype(jnp.int32)
     new_state = TrackerState(T_new, theta_new, frames_in.astype(state.images.dtype), data_weight, visible, appearance,
-                             modality_states)
+                             modality_states, occluder_depth=state.occluder_depth)
     result = FrameResult(
         T_world_root=T_new, theta=theta_new, T_pred=T_pred, theta_pred=theta_pred, status=status.astype(jnp.int32),
         confidence=confidence, iou=iou, counts=counts, motion_inliers=inliers,

@@ -80,13 +80,14 @@ def _as_array(scales):
 
 @eqx.filter_jit
 def _initial_modality_states(setup: TrackerSetup, frames, offsets, T, theta, params: TrackerParams, crop_shape,
-                             scales=None):
-    """Every configured modality's state at the first frame (known pose), one compiled program."""
+                             scales=None, occluder_depth=None):
+    """Every configured modality's state at the first frame (known pose), one compiled program
+    (`occluder_depth`: (C, H, W) mm of the other objects of a joint run, or None)."""
     cams = crop_camera(setup.cameras, offsets, crop_shape, scales)
     (crops,) = crop_frames((frames,), offsets, crop_shape, scales, T.dtype)
     ren = jax.vmap(lambda cam: render(setup.mesh, cam, T, theta, setup.model, setup.window_plan))(cams)
     ctx = StartContext(setup.mesh, setup.model, setup.cameras, cams, offsets, frames, crops, ren, Pose(T, theta),
-                       setup.window_plan, scales=scales)
+                       setup.window_plan, scales=scales, occluder_depth=occluder_depth)
     return tuple(m.init_state(ctx if setup.prepared_for(i) is None else eqx.tree_at(
         lambda c: c.prepared, ctx, setup.prepared_for(i), is_leaf=lambda x: x is None), params)
         for i, m in enumerate(setup.config.modalities()))
@@ -426,8 +427,11 @@ class Tracker:
         return self._default_params[crop_shape]
 
     # --- tracking ---------------------------------------------------------------------------------
-    def start(self, frames, T_world_root, theta=None) -> TrackerState:
+    def start(self, frames, T_world_root, theta=None, occluder_depth=None) -> TrackerState:
         """The state at the first frame, whose pose is known: the appearance model sees it unoccluded.
+
+        `occluder_depth`: (C, H, W) depth (mm, inf: none) of the other objects of a joint run (`JointTracker`),
+        kept in the state (`TrackerState.occluder_depth`); None for one object.
 
         Raises:
             ValueError: malformed frames or pose, or an object behind a camera / outside every image.
@@ -462,7 +466,8 @@ class Tracker:
         # move), others in the tracker's dtype. Later frames are cast to the same dtype: one program.
         self.frame_dtype = np.uint8 if frames.dtype == np.uint8 else np.dtype(self.dtype)
         states = _initial_modality_states(setup, jnp.asarray(frames, self.dtype), jnp.asarray(offsets), T, theta,
-                                          self.params_for(crop_shape), crop_shape, _as_array(scales))
+                                          self.params_for(crop_shape), crop_shape, _as_array(scales),
+                                          None if occluder_depth is None else jnp.asarray(occluder_depth, self.dtype))
         self.keyframes = None
         if self.recovery_modality() is not None and self.config.recovery.keyframes is not None:
             self.keyframes = KeyframeModel(np.asarray(self.mesh.vertices), np.asarray(self.mesh.faces),
@@ -471,7 +476,7 @@ class Tracker:
         return TrackerState(
             T_world_root=T, theta=theta, images=jnp.asarray(self._frames_as_state(frames)),
             data_weight=jnp.ones((self.num_cameras, H, W), self.dtype), visible=sil, appearance=appearance,
-            modalities=states,
+            modalities=states, occluder_depth=None if occluder_depth is None else jnp.asarray(occluder_depth, self.dtype),
         )
 
     def _initial_appearance(self, frames, T, theta, offsets=None, crop_shape=None, scales=None):

@@ -45,6 +45,7 @@ from ._lines import sample_lines as sample_lines
 from ._lines import schedule as schedule
 from ._lines import segment_log_odds as segment_log_odds
 from ._lines import smoothed_step as smoothed_step
+from ._lines import unoccluded as unoccluded
 from ._modality import LineRegion as LineRegion
 from ._modality import LineState as LineState
 from ._viewmodel import ContourPoints as ContourPoints

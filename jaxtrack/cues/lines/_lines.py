@@ -93,6 +93,9 @@ class LineParams(eqx.Module):
         weight: factor on every row's weight.
         unconsidered_line_length: px next to the contour left out of the histograms (M3T: 0.5).
         max_considered_line_length: px per side read for the histograms (M3T: 20; ≤ learn_length).
+        model_occlusion_threshold: mm: a line is hidden when something else known (another tracked object,
+            `occluder_depth` of `measure_lines`) lies nearer than the contour point by more than this (M3T's
+            model occlusions: 0.03 m).
     """
 
     function_amplitude: jax.Array
@@ -102,6 +105,7 @@ class LineParams(eqx.Module):
     weight: jax.Array
     unconsidered_line_length: jax.Array
     max_considered_line_length: jax.Array
+    model_occlusion_threshold: jax.Array
 
 
 def line_params(
@@ -113,13 +117,31 @@ def line_params(
     weight=1.0,
     unconsidered_line_length=0.5,
     max_considered_line_length=20.0,
+    model_occlusion_threshold=30.0,
 ) -> LineParams:
     """`LineParams` with M3T's defaults as arrays of `dtype`."""
     a = lambda x: jnp.asarray(x, dtype)
     return LineParams(
         a(function_amplitude), a(function_slope), a(min_continuous_distance), a(posterior_prior), a(weight),
-        a(unconsidered_line_length), a(max_considered_line_length),
+        a(unconsidered_line_length), a(max_considered_line_length), a(model_occlusion_threshold),
     )
+
+
+def unoccluded(center, depth, occluder_depth, threshold):
+    """(N,) bool: no known occluder in front of the contour points (M3T's model occlusions). Jittable.
+
+    Args:
+        center: (N, 2) pixels (x, y) of the points in the image of `occluder_depth`.
+        depth: (N,) the points' camera-frame z (mm).
+        occluder_depth: (H, W) depth (mm) of everything else known in the scene (the other tracked objects,
+            min-filtered over a few pixels on the host), inf where nothing is.
+        threshold: mm a occluder must lie in front of a point to hide it.
+    """
+    h, w = occluder_depth.shape
+    ix = jnp.clip(jnp.floor(center[:, 0] + 0.5), 0, w - 1).astype(jnp.int32)
+    iy = jnp.clip(jnp.floor(center[:, 1] + 0.5), 0, h - 1).astype(jnp.int32)
+    d = occluder_depth[iy, ix].astype(depth.dtype)
+    return ~(d < depth - threshold)
 
 
 class ProjectedPoints(eqx.Module):
@@ -353,6 +375,7 @@ def measure_lines(
     config: LineConfig = DEFAULT_LINE_CONFIG,
     model: KinematicModel | None = None,
     theta=None,
+    occluder_depth=None,
 ) -> LineMeasurements:
     """Project the contour points, read their lines and compute each contour distribution. Jittable.
 
@@ -363,6 +386,9 @@ def measure_lines(
         params: `LineParams`; scale: pixels per segment (int, traced is fine; clamped to
             [1, config.max_scale]).
         model, theta: kinematic tree and (J,) joints for `ContourPoints` of several parts.
+        occluder_depth: (H, W) depth (mm) of other known objects (inf: none) or None; lines whose point lies
+            behind one (`unoccluded`) are not valid, and the pixels of the others' lines that lie behind one count as
+            neither foreground nor background (log odds 0).
     """
     dtype = camera.K.dtype
     image = jnp.asarray(image)  # uint8 or float; the samples are cast
@@ -371,6 +397,10 @@ def measure_lines(
     points = _as_points(points, camera, T_world_root)
     proj = project_contour(camera, T_world_root, points, model, theta)
     samples = sample_lines(image, proj.center, proj.normal, scale, config)
+    if occluder_depth is not None:  # pixels of a known occluder say nothing about this contour: log odds 0
+        d = occluder_depth[samples.pixel[..., 1], samples.pixel[..., 0]].astype(dtype)
+        z_line = jnp.where(proj.valid, proj.depth, 1.0)[:, None]
+        samples = eqx.tree_at(lambda m: m.mask, samples, samples.mask & ~(d < z_line - params.model_occlusion_threshold))
     log_odds = segment_log_odds(histograms, samples, scale, config, params.posterior_prior)
     dist = contour_distribution(log_odds, params.function_amplitude, params.function_slope, config.function_length)
     mean_seg, var_seg = distribution_moments(dist, min_expected_variance(params.function_amplitude, params.function_slope))
@@ -378,6 +408,8 @@ def measure_lines(
     z = jnp.where(proj.valid, proj.depth, 1.0)
     continuous = jnp.minimum(points.foreground_distance, points.background_distance) * camera.K[0, 0] / (z * seg_px)
     valid = proj.valid & samples.inside & (continuous >= params.min_continuous_distance)
+    if occluder_depth is not None:
+        valid = valid & unoccluded(proj.center, z, occluder_depth, params.model_occlusion_threshold)
     return LineMeasurements(
         center=proj.center,
         normal=proj.normal,
@@ -451,13 +483,15 @@ def line_rows(
     cue=Cue.REGION,
     camera_index=0,
     undistort: bool = True,
+    occluder_depth=None,
 ) -> Correspondences:
     """Correspondence lines → padded edge rows for `jaxtrack.solve.solve_pose`. Jittable, vmappable.
 
     `measure_lines` then `rows_from_measurements`; N rows (the view model's points per view, or the
-    `ContourPoints`' capacity), zero weight where a line is not valid.
+    `ContourPoints`' capacity), zero weight where a line is not valid (or hidden by `occluder_depth`).
     """
-    lines = measure_lines(camera, T_world_root, points, image, histograms, params, scale, config, model, theta)
+    lines = measure_lines(camera, T_world_root, points, image, histograms, params, scale, config, model, theta,
+                          occluder_depth)
     return rows_from_measurements(camera, lines, params, standard_deviation, cue, camera_index, undistort)
 
 
@@ -535,12 +569,14 @@ def line_learning_pixels(
     config: LineConfig = DEFAULT_LINE_CONFIG,
     model: KinematicModel | None = None,
     theta=None,
+    occluder_depth=None,
 ):
     """Pixels on the lines inside and outside the projected contour for the histograms. Jittable.
 
     As M3T: from `unconsidered_line_length` px off the centre, one pixel per step along the dominant
     axis, up to `max_considered_line_length` px (and at most `learn_length` pixels), and short of the
-    point's foreground / background distance (less twice the unconsidered length).
+    point's foreground / background distance (less twice the unconsidered length). Lines hidden by
+    `occluder_depth` ((H, W) mm of other known objects, `unoccluded`) teach nothing.
 
     Returns:
         pixels_fg (N · Lf, 2), mask_fg (N · Lf,), pixels_bg, mask_bg, with Lf = config.learn_length.
@@ -555,6 +591,8 @@ def line_learning_pixels(
     ic = jnp.floor(c + 0.5)
     centre_in = (ic[:, 0] >= 0) & (ic[:, 0] <= w - 1) & (ic[:, 1] >= 0) & (ic[:, 1] <= h - 1)
     ok = proj.valid & centre_in
+    if occluder_depth is not None:
+        ok = ok & unoccluded(c, z, occluder_depth, params.model_occlusion_threshold)
     skip = params.unconsidered_line_length
     fx = camera.K[0, 0]
     len_f = jnp.minimum(params.max_considered_line_length, points.foreground_distance * fx / z - 2 * skip)
@@ -587,12 +625,14 @@ def learn_line_histograms(
     config: LineConfig = DEFAULT_LINE_CONFIG,
     model: KinematicModel | None = None,
     theta=None,
+    occluder_depth=None,
 ) -> ColourHistograms:
     """Colour histograms of the lines' pixels inside / outside the contour at a pose. Jittable.
 
     Blend them into the running histograms with `update_histograms` (M3T: rate 1 on the first frame,
-    0.2 after).
+    0.2 after). Lines hidden by `occluder_depth` ((H, W) mm, or None) are left out.
     """
     image = jnp.asarray(image, camera.K.dtype)
-    pf, mf, pb, mb = line_learning_pixels(camera, T_world_root, points, image.shape[:2], params, config, model, theta)
+    pf, mf, pb, mb = line_learning_pixels(camera, T_world_root, points, image.shape[:2], params, config, model, theta,
+                                          occluder_depth)
     return learn_histograms(image, pf, mf, pb, mb, bins)

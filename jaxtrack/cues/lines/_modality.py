@@ -5,7 +5,8 @@ histograms, evaluated only on short lines along the normals of the projected mod
 RBOT, SRT3D, M3T). Per round: the contour points of the sparse viewpoint model's nearest view (rigid;
 for a kinematic chain, of a render at the predicted pose, carried through the rounds) are projected
 at the current pose, each line is read at the round's scale, the contour distribution along it gives
-an edge row (its mean the observed contour, its variance the weight). The lines' rows are the n_C of
+an edge row (its mean the observed contour, its variance the weight). In a joint run of several objects,
+lines behind another tracked object (`FrameContext.occluder_depth`) are left out (M3T's model occlusions). The lines' rows are the n_C of
 Section V. At the end of the frame the histograms learn the lines' pixels at the final pose (rate 0.2,
 M3T). No render per round and no crop: one compiled program serves every object size.
 """
@@ -119,6 +120,11 @@ class LineRegion(Modality):
         cams = ctx.cameras
         return [fn(jax.tree.map(lambda a, c=c: a[c], cams), c) for c in range(cams.K.shape[0])]
 
+    @staticmethod
+    def _occluder(ctx, c):
+        """(H, W) depth of the other tracked objects in camera `c`, or None (one object)."""
+        return None if ctx.occluder_depth is None else ctx.occluder_depth[c]
+
     def _render_points(self, ctx, pose: Pose) -> ContourPoints:
         """(C, N) contour points of a full-frame render at `pose` (kinematic chains)."""
         T_parts = part_transforms(ctx.model, pose.T_world_root, pose.theta)
@@ -137,7 +143,7 @@ class LineRegion(Modality):
 
         def learn(cam, c):
             return learn_line_histograms(cam, pose.T_world_root, self._points(ctx, points, c), frames[c], params.lines,
-                                         self.bins, self.config, ctx.model, pose.theta)
+                                         self.bins, self.config, ctx.model, pose.theta, self._occluder(ctx, c))
 
         hists = self._per_camera(ctx, learn)
         return LineState(jax.tree.map(lambda *a: jnp.stack(a), *hists))
@@ -164,7 +170,8 @@ class LineRegion(Modality):
         def one(cam, c):
             hist = jax.tree.map(lambda a: a[c], carry)  # this camera's log-odds table (round_start)
             return line_rows(cam, pose.T_world_root, self._points(ctx, frame, c), images[c], hist, params.lines, scale, std,
-                             self.config, ctx.model, pose.theta, cue=self.cue, camera_index=c, undistort=True)
+                             self.config, ctx.model, pose.theta, cue=self.cue, camera_index=c, undistort=True,
+                             occluder_depth=self._occluder(ctx, c))
 
         sets = self._per_camera(ctx, one)
         return jax.tree.map(lambda *a: jnp.concatenate(a), *sets), carry
@@ -175,7 +182,7 @@ class LineRegion(Modality):
 
         def one(cam, c):
             new = learn_line_histograms(cam, pose.T_world_root, self._points(ctx, frame, c), images[c], params.lines,
-                                        self.bins, self.config, ctx.model, pose.theta)
+                                        self.bins, self.config, ctx.model, pose.theta, self._occluder(ctx, c))
             return update_histograms(jax.tree.map(lambda a: a[c], state.histograms), new, params.line_learning_rate)
 
         hists = self._per_camera(ctx, one)
@@ -192,7 +199,7 @@ class LineRegion(Modality):
         def one(cam, c):
             hist = jax.tree.map(lambda a: a[c], tables)
             m = measure_lines(cam, pose.T_world_root, self._points(ctx, frame, c), images[c], hist, params.lines, scale,
-                              self.config, ctx.model, pose.theta)
+                              self.config, ctx.model, pose.theta, self._occluder(ctx, c))
             return jnp.sum(m.valid), jnp.sum(m.valid & (jnp.abs(m.mean) <= self.inlier_px))
 
         per = self._per_camera(ctx, one)
