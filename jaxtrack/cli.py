@@ -492,8 +492,7 @@ def _prepare_joint_tracking(args, seq, out, obj_ids: list[int]):
     from jaxtrack.track import JointOverlayRecorder, OverlayWriter
 
     refused = [flag for flag, on in (("--reset-on-failure", args.reset_on_failure), ("--recover", getattr(args, "recover", False)),
-                                     ("--joint-limits", args.joint_limits),
-                                     ("--pose-prior", getattr(args, "pose_prior", None) is not None)) if on]
+                                     ("--joint-limits", args.joint_limits)) if on]
     if refused:
         raise ValueError(f"{', '.join(refused)}: not available when several objects are tracked together "
                          f"(--obj-id {','.join(map(str, obj_ids))}); track one object for it")
@@ -535,6 +534,7 @@ def _prepare_joint_tracking(args, seq, out, obj_ids: list[int]):
     kwargs = {"cues": args.cues, "cameras": views, "init_poses": init_poses or None, "max_frames": args.max_frames,
               "progress": not args.quiet, "on_frame": recorder,
               **({"region": args.region} if getattr(args, "region", None) is not None else {}),
+              **({"pose_prior": args.pose_prior} if getattr(args, "pose_prior", None) is not None else {}),
               **({"working_shape": args.working_shape} if getattr(args, "working_shape", "default") != "default" else {})}
     return kwargs, recorder
 

@@ -19,6 +19,8 @@ from jaxtrack.io import read_bop_results, read_sequence
 from jaxtrack.track import JointTracker, evaluate_tracking, track_sequence
 
 FRAMES = 24
+# One worker runs the module: its fixtures (the scene, the joint run) are made once.
+pytestmark = pytest.mark.xdist_group("joint")
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -112,6 +114,21 @@ def test_own_footage_needs_one_first_pose_per_mesh(crossing, tmp_path, capsys):
             str(models / "obj_000002.ply"), "--camera", str(calib), "--init-points", str(points), "-o", str(tmp_path / "r.csv")]
     assert main(argv) == 2
     assert "--mesh given 2 time(s), --init-points 1 time(s)" in capsys.readouterr().err
+
+
+def test_two_objects_experiment_smoke(crossing, tmp_path):
+    """experiments/two_objects.py end to end on one short scene (the joint run's programs are compiled already)."""
+    import importlib.util
+    import pathlib
+
+    path = pathlib.Path(__file__).resolve().parents[1] / "experiments" / "two_objects.py"
+    spec = importlib.util.spec_from_file_location("two_objects", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    out = tmp_path / "two.md"
+    assert module.main(["--seeds", "0", "--cues", "region", "--frames", "4", "--priors", "m3t", "-o", str(out)]) == 0
+    text = out.read_text()
+    assert "| region | 2 (behind) | joint, prior m3t |" in text and "| region | 1 (front) | alone, prior m3t |" in text
 
 
 def test_bop_first_pose_behind_the_camera_and_a_far_principal_point_are_named(crossing, tmp_path, capsys):

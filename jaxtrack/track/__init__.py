@@ -17,6 +17,7 @@ from ._overlay import overlay_frame as overlay_frame
 from ._recovery import RecoveryConfig as RecoveryConfig
 from ._recovery import RecoveryResult as RecoveryResult
 from ._recovery import recover_pose as recover_pose
+from ._sequence import JOINT_POSE_PRIOR as JOINT_POSE_PRIOR
 from ._sequence import FrameRecord as FrameRecord
 from ._sequence import TrackingEvaluation as TrackingEvaluation
 from ._sequence import TrackingRun as TrackingRun

@@ -6,8 +6,8 @@ once per frame, and each object's step sees the others as occluders (M3T's model
 - its correspondence lines leave out the lines whose contour point lies behind another object's surface
   (`TrackerState.occluder_depth`, min-filtered over `occluder_radius_px` so that a line grazing the other
   object's outline is left out too), in the refinement, the confidence and the histograms it learns;
-- its flow and SIFT ignore the pixels of frame t where another object covers it (r(x) = 0 and out of the
-  SIFT mask, `TrackerState.data_weight` / `visible`).
+- its flow and SIFT ignore the pixels of frame t where another object covered it then or covers it at its
+  latest pose (r(x) = 0 and out of the SIFT mask, `TrackerState.data_weight` / `visible`).
 
 The objects are stepped in turn (Gauss-Seidel): object i sees the objects before it at their new pose,
 those after it at the previous frame's. An object whose frame is not OK (or RECOVERED) hides nothing until it is
@@ -130,11 +130,14 @@ class JointTracker:
         if self._depths is None:
             raise ValueError("JointTracker.step: call start first")
         new_states, results, infos = [], [], []
+        raw_t, _ = self._occluded()  # the others as frame t showed them
         for i, (tracker, state) in enumerate(zip(self.trackers, states)):
             t0 = time.perf_counter()
-            raw, grown = self._occluded()
-            own = self._depths[i]
-            hidden = raw[i] < own * (1.0 - 1e-4)  # own pixels of frame t behind another object
+            raw, grown = self._occluded()  # the others at their latest poses (t+1 for those stepped already)
+            own = self._depths[i] * (1.0 - 1e-4)
+            # Own pixels of frame t that another object covered then, or covers where it is now: flow and SIFT from
+            # them would follow the other object.
+            hidden = (raw_t[i] < own) | (raw[i] < own)
             state = eqx.tree_at(lambda s: s.occluder_depth, state, grown[i].astype(tracker.dtype), is_leaf=lambda x: x is None)
             state = eqx.tree_at(lambda s: (s.data_weight, s.visible), state,
                                 (jnp.where(hidden, 0.0, state.data_weight).astype(state.data_weight.dtype),
