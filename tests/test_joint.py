@@ -8,6 +8,7 @@ tracked; tracked alone, object 2's lines lock onto object 1's outline.
 import json
 import re
 
+import cv2
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -17,6 +18,7 @@ from jaxtrack.cli import main
 from jaxtrack.cues.lines import line_params, unoccluded
 from jaxtrack.io import read_bop_results, read_sequence
 from jaxtrack.track import JointTracker, evaluate_tracking, track_sequence
+from jaxtrack.track._overlay import OBJECT_COLOURS
 
 FRAMES = 24
 # One worker runs the module: its fixtures (the scene, the joint run) are made once.
@@ -64,6 +66,8 @@ def test_joint_tracking_tracks_both_crossing_objects(crossing, joint_run):
     records = [json.loads(line) for line in (out / "r.frames.jsonl").read_text().splitlines()]
     assert sorted({r["obj_id"] for r in records}) == [1, 2]
     assert len(list((out / "overlay").glob("*.png"))) == FRAMES
+    first = cv2.imread(str(out / "overlay" / "000000.png"))[..., ::-1]  # each object outlined in its own colour
+    assert all(np.all(first == colour, axis=-1).sum() > 50 for colour in OBJECT_COLOURS[:2])
     rates = {}
     for obj in (1, 2):
         ev = evaluate_tracking(out / "r.csv", crossing, obj_id=obj)

@@ -290,8 +290,9 @@ class OverlayRecorder:
                                         record.offsets, text, thickness, record.scales))
 
 
-# Per-object contour colours of a joint run (RGB): green first (the single-object colour), then distinct hues.
-OBJECT_COLOURS = (MODEL_COLOUR, (255, 160, 0), (0, 200, 255), (255, 0, 255), (255, 255, 0), (160, 80, 255))
+# Per-object contour colours of a joint run (RGB): green first (the single-object colour), then cyan, yellow, ...
+# (an orange second outline was hard to see on warm backgrounds).
+OBJECT_COLOURS = (MODEL_COLOUR, (0, 220, 255), (255, 255, 0), (255, 0, 255), (255, 160, 0), (160, 80, 255))
 
 
 class JointOverlayRecorder:
