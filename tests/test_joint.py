@@ -155,3 +155,64 @@ def test_bop_first_pose_behind_the_camera_and_a_far_principal_point_are_named(cr
     assert main(["track", str(seq), "-o", str(tmp_path / "r.csv"), "--quiet"]) == 2
     assert re.search(r"scene_camera.json: frame 0 field 'cam_K' puts the principal point at \(5000, 119.5\), outside the "
                      r"320x240 images", capsys.readouterr().err)
+
+
+def _rbot_layout(crossing, root, variant="d_occlusion", frames=6):
+    """The crossing scene written in the RBOT dataset's layout (object 1 as "box", object 2 as the squirrel)."""
+    import shutil
+
+    import trimesh
+
+    seq = read_sequence(crossing)
+    view = seq.views[0]
+    (root / "box" / "frames").mkdir(parents=True)
+    for k in range(frames):
+        shutil.copy(view.frame_paths[k], root / "box" / "frames" / f"{variant}{k:04d}.png")
+    for name, obj in (("poses_first.txt", 1), ("poses_second.txt", 2)):
+        rows = [np.concatenate([T[:3, :3].ravel(), T[:3, 3]]) for T in view.T_cam_obj[obj][:frames]]
+        (root / name).write_text("r11\tr12\tr13\tr21\tr22\tr23\tr31\tr32\tr33\ttx\tty\ttz\n"
+                                 + "".join("\t".join(f"{v:.9g}" for v in r) + "\n" for r in rows))
+    K = view.K
+    (root / "camera_calibration.txt").write_text(f"fx\tfy\tcx\tcy\tk1\tk2\tp1\tp2\n{K[0, 0]}\t{K[1, 1]}\t{K[0, 2]}\t{K[1, 2]}"
+                                                 "\t0\t0\t0\t0\n")
+    trimesh.load(seq.model_paths[1]).export(root / "box" / "box.obj")
+    trimesh.load(seq.model_paths[2]).export(root / "squirrel_small.obj")
+    return seq
+
+
+def test_rbot_layout_reads_as_its_bop_twin_and_tracks_both_objects(crossing, tmp_path):
+    from jaxtrack.io import read_rbot_sequence
+    from jaxtrack.track import track_objects
+
+    bop = _rbot_layout(crossing, tmp_path / "RBOT")
+    rbot = read_rbot_sequence(tmp_path / "RBOT", "box", "d_occlusion")
+    view, twin = rbot.views[0], bop.views[0]
+    assert rbot.num_frames == 6 and sorted(rbot.model_paths) == [1, 2]
+    np.testing.assert_allclose(view.K, twin.K)
+    for obj in (1, 2):
+        np.testing.assert_allclose(view.T_cam_obj[obj], twin.T_cam_obj[obj][:6], atol=1e-6)
+    np.testing.assert_array_equal(view.read_frame(3), twin.read_frame(3))
+    runs = track_objects(rbot, cues=("region",), progress=False)
+    for run in runs:
+        err = np.linalg.norm(run.T_cam_obj(0)[:, :3, 3] - view.T_cam_obj[run.obj_id][:, :3, 3], axis=1)
+        assert np.all(err < 20), (run.obj_id, err)
+
+
+def test_rbot_layout_problems_are_named(crossing, tmp_path):
+    from jaxtrack.io import SequenceError, read_rbot_sequence
+
+    root = tmp_path / "RBOT"
+    _rbot_layout(crossing, root, "a_regular", frames=4)
+    assert sorted(read_rbot_sequence(root, "box").model_paths) == [1]  # no occluder outside d_occlusion
+    with pytest.raises(SequenceError, match=r"RBOT.cat.frames: no such RBOT frames folder \(objects in .*\['box'\]\)"):
+        read_rbot_sequence(root, "cat")
+    with pytest.raises(ValueError, match="RBOT variant must be one of a_regular"):
+        read_rbot_sequence(root, "box", "e_fog")
+    (root / "box" / "frames" / "a_regular0002.png").unlink()
+    with pytest.raises(SequenceError, match=r"a_regular0002.png is missing"):
+        read_rbot_sequence(root, "box")
+    (root / "box" / "frames" / "a_regular0003.png").unlink()
+    lines = (root / "poses_first.txt").read_text().splitlines()
+    (root / "poses_first.txt").write_text("\n".join([lines[0], lines[1], "1\t0\t0"]) + "\n")
+    with pytest.raises(SequenceError, match=r"poses_first.txt:3: 3 values; a pose is 12 finite numbers"):
+        read_rbot_sequence(root, "box")

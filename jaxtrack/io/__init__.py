@@ -1,5 +1,6 @@
 """I/O: the BOP scene layout and results CSV; your own video or image folder with an OpenCV calibration file and a
-first pose from clicked points (`own_sequence`, `read_calibration`, `pose_from_points`); meshes, images, Middlebury
+first pose from clicked points (`own_sequence`, `read_calibration`, `pose_from_points`); the RBOT dataset's layout
+(`read_rbot_sequence`); meshes, images, Middlebury
 .flo flow files, URDF models, mocap skeletons and motions (ASF/AMC, BVH) and human body models built from them.
 
 Names load on first use (PEP 562): OpenCV and trimesh are imported only when a reader or writer that
@@ -34,6 +35,10 @@ _EXPORTS = {
     "read_image": "_images",
     "write_image": "_images",
     "load_mesh": "_meshes",
+    "RBOT_VARIANTS": "_rbot",
+    "read_rbot_calibration": "_rbot",
+    "read_rbot_poses": "_rbot",
+    "read_rbot_sequence": "_rbot",
     "CameraCalibration": "_own_video",
     "PointsPose": "_own_video",
     "VideoView": "_own_video",
@@ -117,6 +122,10 @@ if TYPE_CHECKING:  # static analysers and IDEs see the real definitions
     from ._own_video import read_calibration as read_calibration
     from ._own_video import read_init_points as read_init_points
     from ._own_video import write_calibration as write_calibration
+    from ._rbot import RBOT_VARIANTS as RBOT_VARIANTS
+    from ._rbot import read_rbot_calibration as read_rbot_calibration
+    from ._rbot import read_rbot_poses as read_rbot_poses
+    from ._rbot import read_rbot_sequence as read_rbot_sequence
     from ._urdf import ArticulatedModel as ArticulatedModel
     from ._urdf import RobotDescription as RobotDescription
     from ._urdf import RobotJoint as RobotJoint
