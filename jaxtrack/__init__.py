@@ -39,9 +39,11 @@ from .solve import SolverConfig as SolverConfig
 from .solve import estimate_pose as estimate_pose
 from .solve import make_correspondences as make_correspondences
 from .solve import solve_pose as solve_pose
+from .track import JointTracker as JointTracker
 from .track import Tracker as Tracker
 from .track import TrackerConfig as TrackerConfig
 from .track import TrackerParams as TrackerParams
+from .track import track_objects as track_objects
 from .track import track_sequence as track_sequence
 
 __version__ = "0.1.0"
