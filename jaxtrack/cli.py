@@ -332,6 +332,10 @@ def _joint_ids(args, seq) -> list[int] | None:
     """The objects of a joint run (--obj-id with several ids or 'all'), None for one object."""
     ids = args.obj_id
     if ids == "all":
+        bad = [c for c in (args.cameras or []) if c >= len(seq.views)]
+        if bad:
+            raise ValueError(f"--cameras: view {bad[0]} out of range: {seq.root} has {len(seq.views)} camera view(s) "
+                             f"(0-{len(seq.views) - 1})")
         view0 = seq.views[(args.cameras or [0])[0]] if seq.views else None
         given = len(args.init_pose) if isinstance(args.init_pose, list) else 0
         ids = [o for o in sorted(seq.model_paths) if given or (

@@ -101,6 +101,7 @@ def test_joint_tracker_refuses_trackers_on_different_rigs():
     (["--obj-id", "1,2", "--reset-on-failure"], "--reset-on-failure: not available when several objects"),
     (["--obj-id", "1,2", "--init-pose", "1 0 0 0 0 1 0 0 0 0 1 500"], "--init-pose given 1 time"),
     (["--obj-id", "1,3"], "object 3 has no mesh"),
+    (["--obj-id", "all", "--cameras", "3"], "--cameras: view 3 out of range"),
 ])
 def test_joint_cli_bad_input_is_refused_before_tracking(crossing, tmp_path, capsys, argv, message):
     assert main(["track", str(crossing), "-o", str(tmp_path / "r.csv"), "--quiet", *argv]) == 2
