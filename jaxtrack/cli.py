@@ -543,18 +543,29 @@ def _prepare_joint_tracking(args, seq, out, obj_ids: list[int]):
     return kwargs, recorder
 
 
+def _run_tracking(args, track, recorder):
+    """`track()` with the on-disk compilation cache (unless --no-cache); the overlay is closed whatever happens."""
+    if not args.no_cache:
+        enable_compilation_cache()
+    try:
+        return track()
+    finally:
+        if recorder is not None:
+            recorder.writer.close()
+
+
+def _print_overlay(recorder, note: str = "") -> None:
+    if recorder is not None:
+        kind = "video" if recorder.writer.is_video else "PNG folder"
+        print(f"overlay {kind} -> {recorder.writer.path} ({recorder.writer.count} frames{note})")
+
+
 def _track_joint(args, seq, out, obj_ids: list[int]):
     """Track several objects of `seq` jointly, write one CSV (rows per object) and the overlay."""
     from jaxtrack.track import track_objects, write_tracking_results
 
     kwargs, recorder = _prepare_joint_tracking(args, seq, out, obj_ids)
-    if not args.no_cache:
-        enable_compilation_cache()
-    try:
-        runs = track_objects(seq, obj_ids, **kwargs)
-    finally:
-        if recorder is not None:
-            recorder.writer.close()
+    runs = _run_tracking(args, lambda: track_objects(seq, obj_ids, **kwargs), recorder)
     csv, jsonl = write_tracking_results(runs, out)
     return runs, csv, jsonl, recorder
 
@@ -574,9 +585,7 @@ def _joint_summary(runs, seq, cues, csv, jsonl, recorder) -> None:
         counts = Counter(r.status)
         print(f"obj {r.obj_id}: " + ", ".join(f"{k} {v}" for k, v in counts.most_common()))
     print(f"results -> {csv} (+ {jsonl.name}; one row per object and frame; jaxtrack eval --obj-id picks one)")
-    if recorder is not None:
-        kind = "video" if recorder.writer.is_video else "PNG folder"
-        print(f"overlay {kind} -> {recorder.writer.path} ({recorder.writer.count} frames, one colour per object)")
+    _print_overlay(recorder, ", one colour per object")
 
 
 def _track(args, seq, out):
@@ -584,13 +593,7 @@ def _track(args, seq, out):
     from jaxtrack.track import track_sequence, write_tracking_results
 
     kwargs, recorder = _prepare_tracking(args, seq, out)
-    if not args.no_cache:
-        enable_compilation_cache()
-    try:
-        run = track_sequence(seq, **kwargs)
-    finally:
-        if recorder is not None:
-            recorder.writer.close()
+    run = _run_tracking(args, lambda: track_sequence(seq, **kwargs), recorder)
     csv, jsonl = write_tracking_results(run, out)
     return run, csv, jsonl, recorder
 
@@ -621,9 +624,7 @@ def _tracking_summary(run, seq, cues, csv, jsonl, recorder) -> None:
     counts = Counter(run.status)
     print("status: " + ", ".join(f"{k} {v}" for k, v in counts.most_common()) + f"; resets {int(np.sum(run.reset))}")
     print(f"results -> {csv} (+ {jsonl.name}" + (f", {csv.stem}.joints.csv" if run.joint_names else "") + ")")
-    if recorder is not None:
-        kind = "video" if recorder.writer.is_video else "PNG folder"
-        print(f"overlay {kind} -> {recorder.writer.path} ({recorder.writer.count} frames)")
+    _print_overlay(recorder)
 
 
 def _own_footage(args):

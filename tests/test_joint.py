@@ -193,7 +193,14 @@ def test_rbot_layout_reads_as_its_bop_twin_and_tracks_both_objects(crossing, tmp
     for obj in (1, 2):
         np.testing.assert_allclose(view.T_cam_obj[obj], twin.T_cam_obj[obj][:6], atol=1e-6)
     np.testing.assert_array_equal(view.read_frame(3), twin.read_frame(3))
-    runs = track_objects(rbot, cues=("region",), progress=False)
+    import equinox as eqx
+
+    from jaxtrack.track import track_step
+
+    traces = []  # traces of the step after each frame: none after the first
+    runs = track_objects(rbot, cues=("region",), progress=False,
+                         on_frame=lambda records: traces.append(eqx.debug.get_num_traces(track_step)))
+    assert len(traces) == 6 and len(set(traces[1:])) == 1, traces
     for run in runs:
         err = np.linalg.norm(run.T_cam_obj(0)[:, :3, 3] - view.T_cam_obj[run.obj_id][:, :3, 3], axis=1)
         assert np.all(err < 20), (run.obj_id, err)

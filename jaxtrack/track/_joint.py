@@ -38,15 +38,13 @@ def _depth_maps(mesh, cameras, T, theta, model, plan) -> RenderOutput:
     return jax.vmap(lambda cam: render(mesh, cam, T, theta, model, plan))(cameras)
 
 
-@functools.partial(jax.jit, static_argnums=1)
-def _occluders(depths, radius: int):
-    """(N, C, H, W) depths of N objects → (N, C, H, W) per object the nearest *other* object's depth, raw and
+@functools.partial(jax.jit, static_argnums=2)
+def _occluders(depths, i, radius: int):
+    """(N, C, H, W) depths of N objects → (C, H, W) the nearest depth of every object but `i` (traced), raw and
     min-filtered over a (2r+1)² window (inf where none)."""
-    n = depths.shape[0]
-    others = jnp.stack([jnp.min(jnp.where((jnp.arange(n) == i)[:, None, None, None], jnp.inf, depths), axis=0)
-                        for i in range(n)])
+    others = jnp.min(jnp.where((jnp.arange(depths.shape[0]) == i)[:, None, None, None], jnp.inf, depths), axis=0)
     k = 2 * radius + 1
-    grown = jax.lax.reduce_window(others, jnp.inf, jax.lax.min, (1, 1, k, k), (1, 1, 1, 1), "SAME")
+    grown = jax.lax.reduce_window(others, jnp.inf, jax.lax.min, (1, k, k), (1, 1, 1), "SAME")
     return others, grown
 
 
@@ -101,8 +99,9 @@ class JointTracker:
             tracker._replan(jnp.asarray(T, tracker.dtype), jnp.asarray(theta, tracker.dtype))
         return out.depth
 
-    def _occluded(self) -> tuple[jax.Array, jax.Array]:
-        return _occluders(self._depths, self.occluder_radius_px)
+    def _occluded(self, i: int, depths=None) -> tuple[jax.Array, jax.Array]:
+        """(raw, grown) (C, H, W) depths of the objects other than `i` (in `depths`, default the latest)."""
+        return _occluders(self._depths if depths is None else depths, jnp.asarray(i), self.occluder_radius_px)
 
     def start(self, frames, poses: Sequence, thetas: Sequence | None = None) -> list[TrackerState]:
         """Every object's state at the first frame (known poses `poses[i]`, (4, 4) model → world)."""
@@ -118,8 +117,7 @@ class JointTracker:
             T, theta = t._check_pose(poses[i], thetas[i])
             depths.append(self._render_depth(i, T, theta))
         self._depths = jnp.stack(depths)
-        _, grown = self._occluded()
-        return [t.start(frames, poses[i], thetas[i], occluder_depth=grown[i]) for i, t in enumerate(self.trackers)]
+        return [t.start(frames, poses[i], thetas[i], occluder_depth=self._occluded(i)[1]) for i, t in enumerate(self.trackers)]
 
     def step(self, states: Sequence[TrackerState], frames) -> tuple[list[TrackerState], list[FrameResult], list[dict]]:
         """Frames t+1 for every object in turn; returns per object (state, `FrameResult`, info) as `Tracker.step`.
@@ -130,15 +128,16 @@ class JointTracker:
         if self._depths is None:
             raise ValueError("JointTracker.step: call start first")
         new_states, results, infos = [], [], []
-        raw_t, _ = self._occluded()  # the others as frame t showed them
+        depths_t = self._depths  # every object as frame t showed it
         for i, (tracker, state) in enumerate(zip(self.trackers, states)):
             t0 = time.perf_counter()
-            raw, grown = self._occluded()  # the others at their latest poses (t+1 for those stepped already)
+            raw_t, _ = self._occluded(i, depths_t)
+            raw, grown = self._occluded(i)  # the others at their latest poses (t+1 for those stepped already)
             own = self._depths[i] * (1.0 - 1e-4)
             # Own pixels of frame t that another object covered then, or covers where it is now: flow and SIFT from
             # them would follow the other object.
-            hidden = (raw_t[i] < own) | (raw[i] < own)
-            state = eqx.tree_at(lambda s: s.occluder_depth, state, grown[i].astype(tracker.dtype), is_leaf=lambda x: x is None)
+            hidden = (raw_t < own) | (raw < own)
+            state = eqx.tree_at(lambda s: s.occluder_depth, state, grown.astype(tracker.dtype), is_leaf=lambda x: x is None)
             state = eqx.tree_at(lambda s: (s.data_weight, s.visible), state,
                                 (jnp.where(hidden, 0.0, state.data_weight).astype(state.data_weight.dtype),
                                  state.visible & ~hidden))

@@ -129,6 +129,42 @@ def _failed(T_est, T_gt, max_deg: float = 5.0, max_mm: float = 50.0) -> bool:
     return rot > max_deg or np.linalg.norm(T_est[:3, 3] - T_gt[:3, 3]) > max_mm
 
 
+def _views_and_rig(seq, cameras):
+    """The view indices to track (default all, checked) and their stacked `Camera` rig."""
+    views = list(range(len(seq.views))) if cameras is None else [int(c) for c in cameras]
+    if not views or any(c < 0 or c >= len(seq.views) for c in views) or len(set(views)) != len(views):
+        raise ValueError(f"cameras must be distinct view indices in [0, {len(seq.views)}), got {cameras}")
+    rig = stack_cameras([
+        make_camera(seq.views[c].K, seq.views[c].width, seq.views[c].height, seq.views[c].T_cam_world[:3, :3],
+                    seq.views[c].T_cam_world[:3, 3])
+        for c in views
+    ])
+    return views, rig
+
+
+def _config_from(cues, region, working_shape, recovery: bool = False) -> TrackerConfig:
+    """The `TrackerConfig` of a run's keyword arguments ("default" working shape: the config's own)."""
+    extra = {} if region is None else {"region_modality": region}
+    if recovery:
+        extra["recovery"] = RecoveryConfig()
+    if not (isinstance(working_shape, str) and working_shape == "default"):
+        extra["working_shape"] = None if working_shape is None else tuple(int(v) for v in working_shape)
+    return TrackerConfig(cues=tuple(cues), **extra)
+
+
+def _frame_reader(seq, views):
+    """k → (C, H, W, 3) frames k of the views (8-bit files stay uint8)."""
+    return lambda k: np.stack([seq.views[c].read_frame(k, dtype=None) for c in views])
+
+
+def _progress_bar(progress: bool, n: int, desc: str):
+    if not progress:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=n, desc=desc, unit="frame")
+
+
 def track_sequence(
     sequence,
     *,
@@ -183,20 +219,13 @@ def track_sequence(
     from ..io import Sequence, check_first_pose, load_mesh, read_sequence
 
     seq = sequence if isinstance(sequence, Sequence) else read_sequence(sequence)
-    views = list(range(len(seq.views))) if cameras is None else [int(c) for c in cameras]
-    if not views or any(c < 0 or c >= len(seq.views) for c in views) or len(set(views)) != len(views):
-        raise ValueError(f"cameras must be distinct view indices in [0, {len(seq.views)}), got {cameras}")
+    views, rig = _views_and_rig(seq, cameras)
     ids = sorted(seq.model_paths)
     if obj_id is None:
         obj_id = ids[0] if ids else None
     if obj_id not in seq.model_paths:
         raise ValueError(f"obj_id {obj_id} has no mesh in {seq.root}/models (have {ids})")
     view0 = seq.views[views[0]]
-    rig = stack_cameras([
-        make_camera(seq.views[c].K, seq.views[c].width, seq.views[c].height, seq.views[c].T_cam_world[:3, :3],
-                    seq.views[c].T_cam_world[:3, 3])
-        for c in views
-    ])
     gt = view0.T_cam_obj.get(obj_id)
     T_cam0_world = np.asarray(view0.T_cam_world, np.float64)
     pose_source = "init_pose" if init_pose is not None else f"{view0.folder / 'scene_gt.json'}: frame 0, obj_id {obj_id}"
@@ -229,25 +258,14 @@ def track_sequence(
     if joint_limits and articulated is None:
         raise ValueError(f"joint_limits: obj_id {obj_id} is rigid ({model_path.name}); limits come from a URDF")
     if config is None:
-        extra = {} if region is None else {"region_modality": region}
-        if recovery:
-            extra["recovery"] = RecoveryConfig()
-        if not (isinstance(working_shape, str) and working_shape == "default"):
-            extra["working_shape"] = None if working_shape is None else tuple(int(v) for v in working_shape)
-        config = TrackerConfig(cues=tuple(cues), **extra)
+        config = _config_from(cues, region, working_shape, recovery)
     limits = (articulated["lower"], articulated["upper"]) if joint_limits else None
     tracker = Tracker(mesh, rig, model=model, config=config, params=params, joint_limits=limits,
                       **({} if pose_prior is None else {"pose_prior": pose_prior}))
     T_world_gt = None if gt is None else np.einsum("ij,fjk->fik", np.linalg.inv(T_cam0_world), gt)
 
-    def frames(k):
-        return np.stack([seq.views[c].read_frame(k, dtype=None) for c in views])  # 8-bit files stay uint8
-
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=n, desc="tracking", unit="frame")
+    frames = _frame_reader(seq, views)
+    bar = _progress_bar(progress, n, "tracking")
     T_cam_world = np.stack([np.asarray(seq.views[c].T_cam_world, np.float64) for c in views])
 
     def report(k, images, T, phi=None, offsets=None, scales=None):
@@ -354,9 +372,7 @@ def track_objects(
     from ._joint import JointTracker
 
     seq = sequence if isinstance(sequence, Sequence) else read_sequence(sequence)
-    views = list(range(len(seq.views))) if cameras is None else [int(c) for c in cameras]
-    if not views or any(c < 0 or c >= len(seq.views) for c in views) or len(set(views)) != len(views):
-        raise ValueError(f"cameras must be distinct view indices in [0, {len(seq.views)}), got {cameras}")
+    views, rig = _views_and_rig(seq, cameras)
     view0 = seq.views[views[0]]
     init_poses = {} if init_poses is None else {int(k): v for k, v in init_poses.items()}
     if obj_ids is None:
@@ -371,17 +387,9 @@ def track_objects(
     if max_frames is not None and int(max_frames) < 1:
         raise ValueError(f"max_frames must be ≥ 1, got {max_frames}")
     n = seq.num_frames if max_frames is None else min(seq.num_frames, int(max_frames))
-    rig = stack_cameras([
-        make_camera(seq.views[c].K, seq.views[c].width, seq.views[c].height, seq.views[c].T_cam_world[:3, :3],
-                    seq.views[c].T_cam_world[:3, 3])
-        for c in views
-    ])
     T_cam0_world = np.asarray(view0.T_cam_world, np.float64)
     if config is None:
-        extra = {} if region is None else {"region_modality": region}
-        if not (isinstance(working_shape, str) and working_shape == "default"):
-            extra["working_shape"] = None if working_shape is None else tuple(int(v) for v in working_shape)
-        config = TrackerConfig(cues=tuple(cues), **extra)
+        config = _config_from(cues, region, working_shape)
     trackers, starts = [], []
     for o in obj_ids:
         path = seq.model_paths[o]
@@ -405,14 +413,8 @@ def track_objects(
     joint = JointTracker(trackers)
     T_cam_world = np.stack([np.asarray(seq.views[c].T_cam_world, np.float64) for c in views])
 
-    def frames(k):
-        return np.stack([seq.views[c].read_frame(k, dtype=None) for c in views])
-
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=n, desc=f"tracking {len(obj_ids)} objects", unit="frame")
+    frames = _frame_reader(seq, views)
+    bar = _progress_bar(progress, n, f"tracking {len(obj_ids)} objects")
     N = len(obj_ids)
     poses = [[] for _ in range(N)]
     status = [[] for _ in range(N)]
