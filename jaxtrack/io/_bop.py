@@ -413,11 +413,16 @@ def write_bop_results(path: str | os.PathLike, rows: Iterable[tuple]) -> pathlib
         T = checked_array(T, f"write_bop_results: row {n} T")
         if T.shape != (4, 4):
             raise ValueError(f"write_bop_results: row {n} T must be (4, 4), got {T.shape}")
-        R = " ".join(f"{v:.8f}" for v in T[:3, :3].ravel())
-        t = " ".join(f"{v:.6f}" for v in T[:3, 3])
-        lines.append(f"{int(scene_id)},{int(im_id)},{int(obj_id)},{float(score):.6f},{R},{t},{float(seconds):.6f}")
+        lines.append(bop_result_line(scene_id, im_id, obj_id, score, T, seconds))
     path.write_text("\n".join(lines) + "\n")
     return path
+
+
+def bop_result_line(scene_id, im_id, obj_id, score, T, seconds) -> str:
+    """One row of the BOP results CSV (no newline): T (4, 4) a checked model → camera pose in mm."""
+    R = " ".join(f"{v:.8f}" for v in T[:3, :3].ravel())
+    t = " ".join(f"{v:.6f}" for v in T[:3, 3])
+    return f"{int(scene_id)},{int(im_id)},{int(obj_id)},{float(score):.6f},{R},{t},{float(seconds):.6f}"
 
 
 def read_bop_results(path: str | os.PathLike) -> list:
@@ -455,3 +460,24 @@ def read_bop_results(path: str | os.PathLike) -> list:
             raise SequenceError(str(e)) from e
         rows.append((*ids, score, _transform(R, t), seconds))
     return rows
+
+
+def frame_step_sequence(seq: Sequence, step: int, start: int = 0) -> Sequence:
+    """Every `step`-th frame of `seq` from `start` (the RBOT protocol's frame steps S: the same motion at 1/S the
+    frame rate), as a new `Sequence` over the same files; image ids, poses and joints follow the frames kept.
+
+    Raises:
+        ValueError: `step` < 1, or `start` outside the sequence.
+    """
+    step, start = int(step), int(start)
+    if step < 1:
+        raise ValueError(f"frame step must be ≥ 1, got {step}")
+    if not 0 <= start < seq.num_frames:
+        raise ValueError(f"start frame {start} outside the {seq.num_frames} frames of {seq.root}")
+    keep = np.arange(start, seq.num_frames, step)
+    views = [dataclasses.replace(
+        v, frame_paths=[v.frame_paths[k] for k in keep], frame_ids=[v.frame_ids[k] for k in keep],
+        T_cam_obj={o: np.asarray(T)[keep] for o, T in v.T_cam_obj.items()},
+        joints={o: {name: np.asarray(x)[keep] for name, x in js.items()} for o, js in v.joints.items()},
+    ) for v in seq.views]
+    return dataclasses.replace(seq, views=views)

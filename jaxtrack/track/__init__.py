@@ -17,6 +17,9 @@ from ._overlay import overlay_frame as overlay_frame
 from ._recovery import RecoveryConfig as RecoveryConfig
 from ._recovery import RecoveryResult as RecoveryResult
 from ._recovery import recover_pose as recover_pose
+from ._results import ResultsState as ResultsState
+from ._results import TrackingResultsWriter as TrackingResultsWriter
+from ._results import results_state as results_state
 from ._sequence import JOINT_POSE_PRIOR as JOINT_POSE_PRIOR
 from ._sequence import FrameRecord as FrameRecord
 from ._sequence import TrackingEvaluation as TrackingEvaluation

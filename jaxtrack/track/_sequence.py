@@ -28,6 +28,7 @@ from .._status import Status
 from ..geometry import make_camera, rotation_error_deg, stack_cameras
 from ..solve import Cue
 from ._recovery import RecoveryConfig
+from ._results import TrackingResultsWriter, check_complete, write_run_frame
 from ._step import TrackerConfig, TrackerParams
 from ._tracker import Tracker
 
@@ -184,6 +185,7 @@ def track_sequence(
     max_frames: int | None = None,
     progress: bool = True,
     on_frame: Callable[[FrameRecord], object] | None = None,
+    results: str | os.PathLike | None = None,
 ) -> TrackingRun:
     """Track one rigid object through a BOP-layout sequence (`jaxtrack.io.read_sequence`).
 
@@ -210,6 +212,8 @@ def track_sequence(
         progress: show a progress bar with the frame rate.
         on_frame: called with a `FrameRecord` after every frame (the first included), while tracking,
             so that per-frame output (an overlay video) needs no frame kept in memory.
+        results: NAME.csv to write the results to frame by frame, as `write_tracking_results` writes them (a run
+            that stops early leaves its frames and NAME.partial.json; see `jaxtrack.track.results_state`).
 
     Raises:
         ValueError: a camera index out of range, an unknown object, no initial pose, a joint named in
@@ -277,53 +281,73 @@ def track_sequence(
                 reset=reset[-1], theta=thetas[-1], scales=None if scales is None else np.asarray(scales),
             ))
 
-    start = time.perf_counter()
-    images = frames(0)
-    state = tracker.start(images, np.linalg.inv(T_cam0_world) @ init_pose, theta0)
-    poses, thetas = [np.asarray(state.T_world_root, np.float64)], [np.asarray(state.theta, np.float64)]
-    status, conf = [Status.OK.name], [1.0]
-    counts = [np.zeros((len(views), len(config.cues)), np.int64)]
-    timings = [{"total_s": time.perf_counter() - start}]
-    reset = [False]
-    crops = [None]
-    lost_joints = [[]]
-    lost_iou = None if articulated is None else float(tracker.params_for((64, 64)).lost_iou)
-    report(0, images, poses[0])
-    if bar is not None:
-        bar.update(1)
-    for k in range(1, n):
-        t0 = time.perf_counter()
-        images = frames(k)
-        read_s = time.perf_counter() - t0
-        state, result, info = tracker.step(state, images)
-        T = np.asarray(result.T_world_root, np.float64)
-        did_reset = False
-        if reset_on_failure and T_world_gt is not None and _failed(T_cam0_world @ T, gt[k]):
-            state = tracker.start(images, T_world_gt[k], None if theta_gt is None else theta_gt[k])
-            did_reset = True
-        poses.append(T)
-        thetas.append(np.asarray(result.theta, np.float64))
-        status.append(Status(int(result.status)).name)
-        conf.append(float(result.confidence))
-        counts.append(np.asarray(result.counts))
-        info["timings"]["read_s"] = read_s
-        info["timings"]["total_s"] = time.perf_counter() - t0
-        timings.append(info["timings"])
-        reset.append(did_reset)
-        crops.append(None if info.get("crop_shape") is None else tuple(int(v) for v in info["crop_shape"]))
-        if articulated is not None:
-            support = np.asarray(result.part_support)[articulated["child_part"]]
-            lost_joints.append([name for name, s in zip(articulated["names"], support) if 0 <= s < lost_iou])
-        else:
-            lost_joints.append([])
-        has_crop = info.get("offsets") is not None
-        report(k, images, T, result.region_phi if has_crop else None, info["offsets"] if has_crop else None,
-               info.get("scales") if has_crop else None)
+    writer = None if results is None else TrackingResultsWriter(
+        results, camera_ids=views, T_cam_world=T_cam_world, cue_names=config.cue_names, frames_expected=n,
+        joint_names=() if articulated is None else articulated["names"])
+
+    def save(k):
+        if writer is not None:
+            writer.object_frame(obj_id=int(obj_id), im_id=int(view0.frame_ids[k]), T_world_root=poses[-1],
+                                confidence=conf[-1], status=status[-1], counts=counts[-1], timings=timings[-1],
+                                reset=reset[-1], crop=crops[-1], lost_joints=lost_joints[-1] if articulated else None,
+                                joints_urdf=None if articulated is None else thetas[-1] / articulated["scale"])
+            writer.end_frame()
+
+    try:
+        start = time.perf_counter()
+        images = frames(0)
+        state = tracker.start(images, np.linalg.inv(T_cam0_world) @ init_pose, theta0)
+        poses, thetas = [np.asarray(state.T_world_root, np.float64)], [np.asarray(state.theta, np.float64)]
+        status, conf = [Status.OK.name], [1.0]
+        counts = [np.zeros((len(views), len(config.cues)), np.int64)]
+        timings = [{"total_s": time.perf_counter() - start}]
+        reset = [False]
+        crops = [None]
+        lost_joints = [[]]
+        lost_iou = None if articulated is None else float(tracker.params_for((64, 64)).lost_iou)
+        save(0)
+        report(0, images, poses[0])
         if bar is not None:
             bar.update(1)
-            bar.set_postfix(status=status[-1], conf=f"{conf[-1]:.2f}")
-    if bar is not None:
-        bar.close()
+        for k in range(1, n):
+            t0 = time.perf_counter()
+            images = frames(k)
+            read_s = time.perf_counter() - t0
+            state, result, info = tracker.step(state, images)
+            T = np.asarray(result.T_world_root, np.float64)
+            did_reset = False
+            if reset_on_failure and T_world_gt is not None and _failed(T_cam0_world @ T, gt[k]):
+                state = tracker.start(images, T_world_gt[k], None if theta_gt is None else theta_gt[k])
+                did_reset = True
+            poses.append(T)
+            thetas.append(np.asarray(result.theta, np.float64))
+            status.append(Status(int(result.status)).name)
+            conf.append(float(result.confidence))
+            counts.append(np.asarray(result.counts))
+            info["timings"]["read_s"] = read_s
+            info["timings"]["total_s"] = time.perf_counter() - t0
+            timings.append(info["timings"])
+            reset.append(did_reset)
+            crops.append(None if info.get("crop_shape") is None else tuple(int(v) for v in info["crop_shape"]))
+            if articulated is not None:
+                support = np.asarray(result.part_support)[articulated["child_part"]]
+                lost_joints.append([name for name, s in zip(articulated["names"], support) if 0 <= s < lost_iou])
+            else:
+                lost_joints.append([])
+            save(k)
+            has_crop = info.get("offsets") is not None
+            report(k, images, T, result.region_phi if has_crop else None, info["offsets"] if has_crop else None,
+                   info.get("scales") if has_crop else None)
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(status=status[-1], conf=f"{conf[-1]:.2f}")
+        if bar is not None:
+            bar.close()
+    finally:
+        if writer is not None:
+            writer.close()
+    if writer is not None:
+        writer.finish()
     tracker.join_background()  # a background compile must not outlive the run (the process may exit next)
     return TrackingRun(
         frame_ids=list(view0.frame_ids[:n]), obj_id=int(obj_id), T_world_root=np.stack(poses), theta=np.stack(thetas),
@@ -349,6 +373,7 @@ def track_objects(
     max_frames: int | None = None,
     progress: bool = True,
     on_frame: Callable[[list[FrameRecord]], object] | None = None,
+    results: str | os.PathLike | None = None,
 ) -> list[TrackingRun]:
     """Track several rigid objects of one BOP-layout sequence jointly (`JointTracker`): each object's lines
     leave out what the others hide, its flow and SIFT the pixels they cover; each has its own status.
@@ -359,6 +384,7 @@ def track_objects(
         init_poses: {obj_id: (4, 4) model → camera-0 pose of the first frame} (default: the ground truth).
         on_frame: called after every frame with one `FrameRecord` per object (in `obj_ids` order).
         pose_prior: the refinement's pose prior (default `JOINT_POSE_PRIOR`, M3T's; None: the tracker's default, none).
+        results: NAME.csv written frame by frame (every object's rows), as `track_sequence`'s.
         cues, cameras, config, region, working_shape, max_frames, progress: as `track_sequence`.
 
     Returns:
@@ -423,54 +449,74 @@ def track_objects(
     timings = [[] for _ in range(N)]
     crops = [[] for _ in range(N)]
 
-    def report(k, images, results=None, infos=None):
+    def report(k, images, step_results=None, infos=None):
         if on_frame is None:
             return
         records = []
         for i in range(N):
             T = poses[i][-1]
-            has_crop = results is not None and infos[i].get("offsets") is not None
+            has_crop = step_results is not None and infos[i].get("offsets") is not None
             records.append(FrameRecord(
                 index=k, im_id=int(view0.frame_ids[k]), images=images, T_world_root=T,
                 T_cam_obj=np.einsum("cij,jk->cik", T_cam_world, T), status=status[i][-1], confidence=conf[i][-1],
-                region_phi=np.asarray(results[i].region_phi) if has_crop else None,
+                region_phi=np.asarray(step_results[i].region_phi) if has_crop else None,
                 offsets=np.asarray(infos[i]["offsets"]) if has_crop else None, reset=False, theta=np.zeros(0),
                 scales=None if not has_crop or infos[i].get("scales") is None else np.asarray(infos[i]["scales"]),
             ))
         on_frame(records)
 
-    t0 = time.perf_counter()
-    images = frames(0)
-    states = joint.start(images, starts)
-    for i in range(N):
-        poses[i].append(np.asarray(states[i].T_world_root, np.float64))
-        status[i].append(Status.OK.name)
-        conf[i].append(1.0)
-        counts[i].append(np.zeros((len(views), len(config.cues)), np.int64))
-        timings[i].append({"total_s": (time.perf_counter() - t0) / N})
-        crops[i].append(None)
-    report(0, images)
-    if bar is not None:
-        bar.update(1)
-    for k in range(1, n):
+    writer = None if results is None else TrackingResultsWriter(
+        results, camera_ids=views, T_cam_world=T_cam_world, cue_names=config.cue_names, frames_expected=n,
+        several=N > 1)
+
+    def save(k):
+        if writer is not None:
+            for i, o in enumerate(obj_ids):
+                writer.object_frame(obj_id=o, im_id=int(view0.frame_ids[k]), T_world_root=poses[i][-1],
+                                    confidence=conf[i][-1], status=status[i][-1], counts=counts[i][-1],
+                                    timings=timings[i][-1], crop=crops[i][-1])
+            writer.end_frame()
+
+    try:
         t0 = time.perf_counter()
-        images = frames(k)
-        read_s = time.perf_counter() - t0
-        states, results, infos = joint.step(states, images)
-        for i, (result, info) in enumerate(zip(results, infos)):
-            poses[i].append(np.asarray(result.T_world_root, np.float64))
-            status[i].append(Status(int(result.status)).name)
-            conf[i].append(float(result.confidence))
-            counts[i].append(np.asarray(result.counts))
-            info["timings"]["read_s"] = read_s / N
-            timings[i].append(info["timings"])
-            crops[i].append(None if info.get("crop_shape") is None else tuple(int(v) for v in info["crop_shape"]))
-        report(k, images, results, infos)
+        images = frames(0)
+        states = joint.start(images, starts)
+        for i in range(N):
+            poses[i].append(np.asarray(states[i].T_world_root, np.float64))
+            status[i].append(Status.OK.name)
+            conf[i].append(1.0)
+            counts[i].append(np.zeros((len(views), len(config.cues)), np.int64))
+            timings[i].append({"total_s": (time.perf_counter() - t0) / N})
+            crops[i].append(None)
+        save(0)
+        report(0, images)
         if bar is not None:
             bar.update(1)
-            bar.set_postfix(status="/".join(s[-1] for s in status))
-    if bar is not None:
-        bar.close()
+        for k in range(1, n):
+            t0 = time.perf_counter()
+            images = frames(k)
+            read_s = time.perf_counter() - t0
+            states, step_results, infos = joint.step(states, images)
+            for i, (result, info) in enumerate(zip(step_results, infos)):
+                poses[i].append(np.asarray(result.T_world_root, np.float64))
+                status[i].append(Status(int(result.status)).name)
+                conf[i].append(float(result.confidence))
+                counts[i].append(np.asarray(result.counts))
+                info["timings"]["read_s"] = read_s / N
+                timings[i].append(info["timings"])
+                crops[i].append(None if info.get("crop_shape") is None else tuple(int(v) for v in info["crop_shape"]))
+            save(k)
+            report(k, images, step_results, infos)
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(status="/".join(s[-1] for s in status))
+        if bar is not None:
+            bar.close()
+    finally:
+        if writer is not None:
+            writer.close()
+    if writer is not None:
+        writer.finish()
     joint.join_background()
     return [TrackingRun(
         frame_ids=list(view0.frame_ids[:n]), obj_id=o, T_world_root=np.stack(poses[i]), theta=np.zeros((n, 0)),
@@ -518,11 +564,12 @@ def write_tracking_results(run: TrackingRun | list[TrackingRun], path: str | os.
     For an articulated run, NAME.joints.csv too: `scene_id,im_id,obj_id,<joint names>`, one row per
     frame, values in URDF units (radians, metres).
 
+    Rows are written frame by frame (every object and camera of a frame together), as `track_sequence(...,
+    results=)` writes them while tracking.
+
     Returns:
         (csv path, jsonl path).
     """
-    from ..io import write_bop_results
-
     path = pathlib.Path(path)
     if path.suffix.lower() != ".csv":
         raise ValueError(f"results path must end in .csv, got {path}")
@@ -531,30 +578,20 @@ def write_tracking_results(run: TrackingRun | list[TrackingRun], path: str | os.
         raise ValueError("write_tracking_results: no run to write")
     if len(runs) > 1 and any(r.joint_names for r in runs):
         raise ValueError("write_tracking_results: several runs are written together only when rigid")
-    rows = []
-    for r in runs:
-        for ci, c in enumerate(r.camera_ids):
-            T_co = r.T_cam_obj(ci)
-            for k, im_id in enumerate(r.frame_ids):
-                rows.append((c, im_id, r.obj_id, r.confidence[k], T_co[k], r.timings[k].get("total_s", 0.0)))
-    csv = write_bop_results(path, rows)
-    jsonl = path.with_name(path.stem + ".frames.jsonl")
-    with jsonl.open("w") as f:
-        for r in runs:
-            for k, im_id in enumerate(r.frame_ids):
-                counts = {
-                    str(c): {name: int(r.counts[k, ci, j]) for j, name in enumerate(r.cue_names)}
-                    for ci, c in enumerate(r.camera_ids)
-                }
-                f.write(json.dumps({
-                    "im_id": int(im_id), **({"obj_id": int(r.obj_id)} if len(runs) > 1 else {}),
-                    "status": r.status[k], "confidence": float(r.confidence[k]), "counts": counts,
-                    "timings": {key: round(float(v), 6) for key, v in r.timings[k].items()}, "reset": bool(r.reset[k]),
-                    "crop": None if r.crops is None or r.crops[k] is None else list(r.crops[k]),
-                    **({"lost_joints": r.lost_joints[k]} if r.joint_names and r.lost_joints else {}),
-                }) + "\n")
-    if len(runs) == 1 and runs[0].joint_names:
-        write_joint_results(path.with_name(path.stem + ".joints.csv"), runs[0])
+    frames = len(runs[0].frame_ids)
+    if any(len(r.frame_ids) != frames or list(r.camera_ids) != list(runs[0].camera_ids) for r in runs):
+        raise ValueError("write_tracking_results: the runs must share their frames and cameras")
+    writer = TrackingResultsWriter(path, camera_ids=runs[0].camera_ids, T_cam_world=runs[0].T_cam_world,
+                                   cue_names=runs[0].cue_names, frames_expected=frames, several=len(runs) > 1,
+                                   joint_names=runs[0].joint_names if len(runs) == 1 else ())
+    try:
+        for k in range(frames):
+            for r in runs:
+                write_run_frame(writer, r, k)
+            writer.end_frame()
+    finally:
+        writer.close()
+    csv, jsonl = writer.finish()
     return csv, jsonl
 
 
@@ -700,13 +737,14 @@ def evaluate_tracking(results, sequence, *, obj_id: int | None = None, camera: i
         camera: the view (scene_id) whose rows are evaluated (default: the smallest in the CSV).
 
     Raises:
-        ValueError: naming the file and what does not match (an im_id that is not a frame of the
-            sequence, an object without a mesh, a repeated row, a view the sequence does not have).
+        ValueError: naming the file and what does not match (partial results of a run that stopped, an im_id
+            that is not a frame of the sequence, an object without a mesh, a repeated row, a view the sequence does not have).
     """
     from ..io import Sequence, load_trimesh, read_bop_results, read_sequence
     from ._evaluate import add_error, adds_error, pose_errors, success_mask
 
     path = pathlib.Path(results)
+    check_complete(path)  # a run that stopped early: its last rows may be cut, and its frames are not the sequence
     seq = sequence if isinstance(sequence, Sequence) else read_sequence(sequence)
     rows = read_bop_results(path)
     if not rows:
