@@ -209,7 +209,7 @@ def worker(spec: dict) -> dict:
 
     if spec["cache_dir"]:
         try:
-            from jaxtrack.cli import enable_compilation_cache  # what `jaxtrack track` does
+            from jaxtrack import enable_compilation_cache  # what `jaxtrack track` does
         except ImportError:  # pragma: no cover - the CLI helper moved: same settings by hand
             def enable_compilation_cache(path):
                 jax.config.update("jax_compilation_cache_dir", path)

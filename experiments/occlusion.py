@@ -265,7 +265,7 @@ def main(argv=None):
 
     cv2.setNumThreads(1)  # OpenCV's idle workers compete with XLA on a 2-core machine
     if not args.quick:  # a rerun (or the next script) loads compiled steps instead of compiling them again
-        from jaxtrack.cli import enable_compilation_cache
+        from jaxtrack import enable_compilation_cache
 
         enable_compilation_cache()
     started, load_start = time.perf_counter(), os.getloadavg()

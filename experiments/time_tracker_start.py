@@ -24,7 +24,7 @@ WORKER = r"""
 import sys, time
 t0 = time.perf_counter()
 import jax, numpy as np
-from jaxtrack.cli import enable_compilation_cache
+from jaxtrack import enable_compilation_cache
 from jaxtrack.geometry import make_camera, stack_cameras
 from jaxtrack.io import load_mesh, read_sequence
 from jaxtrack.track import Tracker

@@ -13,6 +13,7 @@ from . import modality as modality
 from . import render as render
 from . import solve as solve
 from . import track as track
+from ._cache import enable_compilation_cache as enable_compilation_cache
 from ._lazy import lazy_exports as _lazy_exports
 from ._status import Status as Status
 from ._status import StatusError as StatusError
@@ -51,14 +52,15 @@ __version__ = "0.1.0"
 # Host-side subpackages that pull in OpenCV, trimesh, embree and scikit-image load on first access
 # (PEP 562): `jaxtrack.io`, `jaxtrack.synth` and `from jaxtrack.synth import ...` work as before, but a
 # plain `import jaxtrack` no longer pays for them.
-_LAZY_SUBPACKAGES = ("io", "synth")
+_LAZY_SUBPACKAGES = ("io", "synth", "bench")
 # Top-level names that live in a lazy subpackage.
-_LAZY_NAMES = {"read_sequence": "io"}
+_LAZY_NAMES = {"read_sequence": "io", "run_bench": "bench"}
 
 
 __getattr__, __dir__ = _lazy_exports(__name__, globals(), {**{m: m for m in _LAZY_SUBPACKAGES}, **_LAZY_NAMES})
 
 
 if _TYPE_CHECKING:
+    from . import bench as bench
     from . import io as io
     from . import synth as synth

@@ -1,6 +1,6 @@
 """I/O: the BOP scene layout and results CSV; your own video or image folder with an OpenCV calibration file and a
 first pose from clicked points (`own_sequence`, `read_calibration`, `pose_from_points`); the RBOT dataset's layout
-(`read_rbot_sequence`); meshes, images, Middlebury
+(`read_rbot_sequence`) and BCOT's (`read_bcot_sequence`); meshes, images, Middlebury
 .flo flow files, URDF models, mocap skeletons and motions (ASF/AMC, BVH) and human body models built from them.
 
 Names load on first use (PEP 562): OpenCV and trimesh are imported only when a reader or writer that
@@ -22,6 +22,11 @@ _EXPORTS = {
     "read_camera_view": "_bop",
     "read_sequence": "_bop",
     "write_bop_results": "_bop",
+    "frame_step_sequence": "_bop",
+    "bcot_sequences": "_bcot",
+    "read_bcot_intrinsics": "_bcot",
+    "read_bcot_sequence": "_bcot",
+    "rbot_sequences": "_rbot",
     "write_camera_view": "_bop",
     "flow_errors": "_flo",
     "flow_to_colour": "_flo",
@@ -78,9 +83,13 @@ __getattr__, __dir__ = lazy_exports(__name__, globals(), _EXPORTS)
 
 
 if TYPE_CHECKING:  # static analysers and IDEs see the real definitions
+    from ._bcot import bcot_sequences as bcot_sequences
+    from ._bcot import read_bcot_intrinsics as read_bcot_intrinsics
+    from ._bcot import read_bcot_sequence as read_bcot_sequence
     from ._bop import CameraView as CameraView
     from ._bop import Sequence as Sequence
     from ._bop import SequenceError as SequenceError
+    from ._bop import frame_step_sequence as frame_step_sequence
     from ._bop import read_bop_results as read_bop_results
     from ._bop import read_camera_view as read_camera_view
     from ._bop import read_sequence as read_sequence
@@ -123,6 +132,7 @@ if TYPE_CHECKING:  # static analysers and IDEs see the real definitions
     from ._own_video import read_init_points as read_init_points
     from ._own_video import write_calibration as write_calibration
     from ._rbot import RBOT_VARIANTS as RBOT_VARIANTS
+    from ._rbot import rbot_sequences as rbot_sequences
     from ._rbot import read_rbot_calibration as read_rbot_calibration
     from ._rbot import read_rbot_poses as read_rbot_poses
     from ._rbot import read_rbot_sequence as read_rbot_sequence

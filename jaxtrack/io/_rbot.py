@@ -36,7 +36,8 @@ def _numbers(line: str) -> list[float] | None:
 
 
 def read_rbot_poses(path: str | os.PathLike, n: int | None = None) -> np.ndarray:
-    """(F, 4, 4) model → camera poses (mm) from an RBOT poses file (a header line, then 12 numbers per line).
+    """(F, 4, 4) model → camera poses (mm) from an RBOT poses file (a header line, then 12 numbers per line; BCOT's
+    pose.txt is the same without the header).
 
     Raises:
         SequenceError: the file is missing, a line does not hold 12 numbers, a rotation is not one, or fewer than
@@ -46,7 +47,7 @@ def read_rbot_poses(path: str | os.PathLike, n: int | None = None) -> np.ndarray
 
     path = pathlib.Path(path)
     if not path.is_file():
-        raise SequenceError(f"{path}: RBOT poses file not found")
+        raise SequenceError(f"{path}: poses file not found")
     poses = []
     for number, line in enumerate(path.read_text().splitlines(), start=1):
         if not line.strip():
@@ -137,3 +138,17 @@ def read_rbot_sequence(dataset: str | os.PathLike, obj: str, variant: str = "a_r
         raise SequenceError(str(e)) from e
     view = CameraView(folder, [p for _, p in frames], K, np.eye(4), poses, int(width), int(height), ids)
     return Sequence(root / obj, models, [view])
+
+
+def rbot_sequences(dataset: str | os.PathLike) -> list[tuple[str, str]]:
+    """(object, variant) of every RBOT sequence in `dataset`, sorted: an object folder with its mesh and at least one
+    frame of the variant in frames/ (the layout's 18 objects × 4 variants when complete)."""
+    root = pathlib.Path(dataset)
+    if not root.is_dir():
+        raise SequenceError(f"{root}: no such RBOT folder")
+    out = []
+    for folder in sorted(p for p in root.iterdir() if (p / "frames").is_dir() and (p / f"{p.name}.obj").is_file()):
+        names = {p.name for p in (folder / "frames").iterdir()}
+        out += [(folder.name, v) for v in RBOT_VARIANTS
+                if any(n.startswith(v) and n.endswith(".png") for n in names)]
+    return out

@@ -31,6 +31,9 @@ _LAZY = {
     "render_crossing": "_crossing",
     "write_crossing_sequence": "_crossing",
     "RayCaster": "_raycast",
+    "SYNTH_RBOT_VARIANTS": "_rbot_layout",
+    "RbotSynthConfig": "_rbot_layout",
+    "write_rbot_dataset": "_rbot_layout",
     "PRESETS": "_sequences",
     "SynthConfig": "_sequences",
     "render_sequence": "_sequences",
@@ -48,7 +51,13 @@ if TYPE_CHECKING:  # static analysers and IDEs see the real definitions
     from ._articulated import render_articulated_sequence as render_articulated_sequence
     from ._articulated import upright_urdf_pose as upright_urdf_pose
     from ._articulated import write_articulated_sequence as write_articulated_sequence
+    from ._crossing import CrossingConfig as CrossingConfig
+    from ._crossing import render_crossing as render_crossing
+    from ._crossing import write_crossing_sequence as write_crossing_sequence
     from ._raycast import RayCaster as RayCaster
+    from ._rbot_layout import SYNTH_RBOT_VARIANTS as SYNTH_RBOT_VARIANTS
+    from ._rbot_layout import RbotSynthConfig as RbotSynthConfig
+    from ._rbot_layout import write_rbot_dataset as write_rbot_dataset
     from ._sequences import PRESETS as PRESETS
     from ._sequences import SynthConfig as SynthConfig
     from ._sequences import render_sequence as render_sequence
