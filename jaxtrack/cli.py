@@ -7,6 +7,8 @@ import sys
 
 import numpy as np
 
+from jaxtrack._cache import enable_compilation_cache
+
 
 def _cmd_demo_solver(args) -> int:
     """The pose-solver demo: a built-in synthetic articulated scene tracked frame to frame from noisy
@@ -153,24 +155,6 @@ def _synth_articulated(args) -> int:
         root = write_articulated_sequence(model, T_world_root, theta, cfg, args.out, progress=bar, info=info)
     print(f"wrote {n} frames x {cfg.cameras} camera(s) of {model.name} ({model.num_joints} joints) to {root}")
     return 0
-
-
-def enable_compilation_cache(path: str | None = None) -> str:
-    """Keep compiled XLA programs on disk so a second run with the same frame size skips compiling.
-
-    The directory is `path`, else $JAXTRACK_CACHE_DIR, else ~/.cache/jaxtrack/xla.
-    """
-    import os
-
-    import jax
-
-    path = path or os.environ.get("JAXTRACK_CACHE_DIR") or os.path.join(os.path.expanduser("~"), ".cache", "jaxtrack", "xla")
-    os.makedirs(path, exist_ok=True)
-    jax.config.update("jax_compilation_cache_dir", path)
-    # Every program, the small ones too: a fresh process otherwise compiles again the ~50 small programs of
-    # `Tracker.start` and its host helpers (1.4 s of a 4 s warm start).
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    return path
 
 
 def _cmd_flow(args) -> int:
@@ -562,12 +546,12 @@ def _print_overlay(recorder, note: str = "") -> None:
 
 def _track_joint(args, seq, out, obj_ids: list[int]):
     """Track several objects of `seq` jointly, write one CSV (rows per object) and the overlay."""
-    from jaxtrack.track import track_objects, write_tracking_results
+    from jaxtrack.track import track_objects
 
     kwargs, recorder = _prepare_joint_tracking(args, seq, out, obj_ids)
-    runs = _run_tracking(args, lambda: track_objects(seq, obj_ids, **kwargs), recorder)
-    csv, jsonl = write_tracking_results(runs, out)
-    return runs, csv, jsonl, recorder
+    _note_partial(out)
+    runs = _run_tracking(args, lambda: track_objects(seq, obj_ids, **kwargs, results=out), recorder)
+    return runs, out, out.with_name(out.stem + ".frames.jsonl"), recorder
 
 
 def _joint_summary(runs, seq, cues, csv, jsonl, recorder) -> None:
@@ -590,12 +574,23 @@ def _joint_summary(runs, seq, cues, csv, jsonl, recorder) -> None:
 
 def _track(args, seq, out):
     """Track `seq` as `args` say, write the results (and the overlay); returns the run and the paths."""
-    from jaxtrack.track import track_sequence, write_tracking_results
+    from jaxtrack.track import track_sequence
 
     kwargs, recorder = _prepare_tracking(args, seq, out)
-    run = _run_tracking(args, lambda: track_sequence(seq, **kwargs), recorder)
-    csv, jsonl = write_tracking_results(run, out)
-    return run, csv, jsonl, recorder
+    _note_partial(out)
+    run = _run_tracking(args, lambda: track_sequence(seq, **kwargs, results=out), recorder)
+    return run, out, out.with_name(out.stem + ".frames.jsonl"), recorder
+
+
+def _note_partial(out) -> None:
+    """Say so when -o holds the partial results of a run that stopped: they are tracked again from the first frame
+    (a restart from their last pose would not give the run's results)."""
+    from jaxtrack.track import results_state
+
+    state = results_state(out)
+    if state.state == "partial":
+        print(f"{out}: partial results of a run that stopped after {state.frames_written} frame(s); tracking the "
+              "sequence again from its first frame", file=sys.stderr)
 
 
 def _tracking_summary(run, seq, cues, csv, jsonl, recorder) -> None:
@@ -700,6 +695,68 @@ def _cmd_track(args) -> int:
         return 0
     run, csv, jsonl, recorder = _track(args, seq, out)
     _tracking_summary(run, seq, args.cues, csv, jsonl, recorder)
+    return 0
+
+
+def _name_list(text: str) -> list[str]:
+    names = [t.strip() for t in text.split(",") if t.strip()]
+    if not names:
+        raise argparse.ArgumentTypeError(f"expected comma-separated names, got {text!r}")
+    return names
+
+
+def _step_list(text: str) -> list[int]:
+    try:
+        steps = [int(t) for t in text.split(",") if t.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers ≥ 1 (1,2,3,4), got {text!r}") from None
+    if not steps or any(s < 1 for s in steps):
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers ≥ 1 (1,2,3,4), got {text!r}")
+    return steps
+
+
+def _cmd_bench(args) -> int:
+    """Track every sequence of a dataset under a protocol (on Ray, or here with --workers 0); write the tables."""
+    import pathlib
+
+    from jaxtrack.bench import BenchSettings, run_bench
+
+    resets = args.resets or ("both" if args.protocol == "rbot" else "off")
+    if args.protocol == "bop" and resets != "off":
+        raise ValueError("--resets: the bop protocol tracks without resets (use --protocol rbot for them)")
+    settings = BenchSettings(
+        protocol=args.protocol, frame_steps=tuple(args.frame_steps), resets={"both": (True, False), "on": (True,),
+                                                                            "off": (False,)}[resets],
+        cues=tuple(args.cues), region=args.region,
+        working_shape=args.working_shape if args.working_shape in ("default", None) else tuple(args.working_shape),
+        pose_prior=None if args.pose_prior is None else tuple(args.pose_prior), recovery=args.recover,
+        max_frames=args.max_frames)
+    workers = args.workers
+    if workers is None and not args.address:
+        try:
+            import ray  # noqa: F401
+        except ImportError:
+            print("jaxtrack bench: ray is not installed (pip install 'jaxtrack[bench]'): running the sequences one after "
+                  "another in this process", file=sys.stderr)
+            workers = 0
+    out = pathlib.Path(args.out) if args.out else pathlib.Path(f"bench-{pathlib.Path(args.dataset).resolve().name}")
+    report = run_bench(args.dataset, out, settings, layout=args.layout, objects=args.objects, variants=args.variants,
+                       workers=workers, address=args.address, use_cache=not args.no_cache, progress=not args.quiet)
+    ran = len(report.results) - len(report.skipped)
+    print(f"benched {len(report.results)} run(s) of {args.dataset} ({ran} now, {len(report.skipped)} found finished in "
+          f"{out}) in {report.wall_s:.1f} s on {report.executor}")
+    modes = sorted({(r["step"], r["reset"]) for r in report.results if not r.get("error")}, key=lambda m: (m[0], not m[1]))
+    for step, reset in modes:
+        values = [r["success"] for r in report.results if not r.get("error") and (r["step"], r["reset"]) == (step, reset)]
+        finite = [v for v in values if np.isfinite(v)]
+        mean = f"{100.0 * float(np.mean(finite)):.1f} %" if finite else "n/a"
+        print(f"  S = {step}, {'with' if reset else 'without'} resets: success {mean} over {len(values)} sequence(s)")
+    print(f"tables -> {report.markdown}, {report.csv.name}" + (f", {report.plot.name}" if report.plot else
+                                                               " (no plot: matplotlib is not installed)"))
+    if report.failed:
+        print(f"jaxtrack bench: {len(report.failed)} run(s) failed (listed in {report.markdown.name}; run the same command "
+              "again to retry them): " + "; ".join(report.failed[:5]), file=sys.stderr)
+        return 1
     return 0
 
 
@@ -1051,6 +1108,49 @@ def build_parser() -> argparse.ArgumentParser:
     track.add_argument("--no-cache", action="store_true", help="do not use the on-disk compilation cache")
     track.add_argument("--quiet", action="store_true", help="no progress bar")
     track.set_defaults(func=_cmd_track)
+
+    bench = sub.add_parser(
+        "bench",
+        help="track every sequence of a dataset (RBOT, BCOT or BOP layout) on Ray workers; tables of the results",
+        description="Track each sequence of DATASET from its first ground-truth pose under a protocol and evaluate it: "
+        "the success rate at 5 cm / 5° with and without RBOT resets at each frame step S, ADD / ADD-S AUC (0-10 cm) and "
+        "ms per frame, per object x variant and overall. Writes OUT/runs/<sequence>/S<S>[-resets].csv (+ frames.jsonl and "
+        "the figures), OUT/bench.md, bench.csv and bench.png. Runs on a local Ray instance by default (one process "
+        "per CPU, one XLA thread each; pip install 'jaxtrack[bench]'), on a cluster with --address, or in this process "
+        "with --workers 0. Resumable: run the same command again and the finished sequences are skipped; a sequence "
+        "that fails is reported and the others finish.",
+    )
+    bench.add_argument("dataset", metavar="DATASET", help="the dataset folder (RBOT's layout, BCOT's, or BOP sequence "
+                       "folders; see --layout)")
+    bench.add_argument("-o", "--out", help="output folder (default ./bench-<DATASET name>); an earlier bench's folder "
+                       "is resumed")
+    bench.add_argument("--protocol", choices=("rbot", "bop"), default="rbot",
+                       help="rbot: frame steps with and without resets (default); bop: every frame, no resets")
+    bench.add_argument("--layout", choices=("auto", "rbot", "bcot", "bop"), default="auto",
+                       help="the dataset's layout (default: found from its files)")
+    bench.add_argument("--frame-steps", dest="frame_steps", type=_step_list, default=[1], metavar="S[,S...]",
+                       help="track every S-th frame (RBOT's frame-rate protocol), e.g. 1,2,3,4 (default 1)")
+    bench.add_argument("--resets", choices=("both", "on", "off"),
+                       help="RBOT resets (restart from the truth after a frame beyond 5 cm / 5°): both runs, only with, "
+                       "only without (default both for rbot, off for bop)")
+    bench.add_argument("--objects", type=_name_list, help="only these objects, comma-separated")
+    bench.add_argument("--variants", type=_name_list, help="only these variants (RBOT: a_regular, b_dynamiclight, "
+                       "c_noisy, d_occlusion; BCOT: scenes; BOP: sequence folders)")
+    bench.add_argument("--workers", type=_number(int, 0), help="Ray worker processes on this machine (default: one per "
+                       "CPU); 0: one after another in this process, without Ray")
+    bench.add_argument("--address", help="join a running Ray cluster (host:port of `ray start --head`, or auto); every "
+                       "node must see DATASET and -o at the same paths")
+    bench.add_argument("--cues", type=_cue_list, default=CUE_CHOICES, help="as jaxtrack track (default region,flow,sift)")
+    bench.add_argument("--region", choices=region_choices(), default=None, help="as jaxtrack track")
+    bench.add_argument("--working-shape", dest="working_shape", metavar="HxW|native", type=_working_shape,
+                       default="default", help="as jaxtrack track")
+    bench.add_argument("--pose-prior", dest="pose_prior", metavar="R,T[,RA,TA,F]", type=_prior_pair, help="as jaxtrack track")
+    bench.add_argument("--recover", action="store_true", help="as jaxtrack track")
+    bench.add_argument("--max-frames", dest="max_frames", metavar="N", type=_number(int, 2),
+                       help="track only the first N frames of each sequence (after the frame step)")
+    bench.add_argument("--no-cache", action="store_true", help="do not use the on-disk compilation cache")
+    bench.add_argument("--quiet", action="store_true", help="no progress bar")
+    bench.set_defaults(func=_cmd_bench)
 
     pick = sub.add_parser(
         "pick",
