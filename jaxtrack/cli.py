@@ -84,6 +84,8 @@ def _cmd_synth(args) -> int:
         raise ValueError("an output folder is required (or --list)")
     if args.urdf or args.mocap:
         return _synth_articulated(args)
+    if args.rbot is not None:
+        return _synth_rbot(args)
     if args.step_deg is not None or args.fps is not None:
         raise ValueError("--step-deg and --fps apply to articulated sequences (--urdf or --mocap)")
     if args.preset and args.preset not in PRESETS:
@@ -100,6 +102,27 @@ def _cmd_synth(args) -> int:
     with tqdm(total=cfg.frames * cfg.cameras, desc="rendering", disable=args.quiet) as bar:
         root = write_sequence(cfg, args.out, progress=bar)
     print(f"wrote {cfg.frames} frames x {cfg.cameras} camera(s) to {root}")
+    return 0
+
+
+def _synth_rbot(args) -> int:
+    """A synthetic dataset in the RBOT dataset's layout (objects x variants on one trajectory), for jaxtrack bench."""
+    from jaxtrack.synth import RbotSynthConfig, write_rbot_dataset
+
+    ignored = [flag for flag, value in (("--preset", args.preset), ("--appearance", args.appearance),
+                                        ("--motion", args.motion), ("--pose-file", args.pose_file),
+                                        ("--salt-fraction", args.salt_fraction), ("--occluders", args.occluders),
+                                        ("--cameras", args.cameras), ("--subsample", args.subsample),
+                                        ("--object", args.object)) if value is not None]
+    if ignored:
+        raise ValueError(f"--rbot writes RBOT's layout (its objects are --rbot OBJECTS); {', '.join(ignored)} apply to one "
+                         "BOP sequence")
+    fields = {"objects": tuple(args.rbot), **({"variants": tuple(args.variants)} if args.variants else {}),
+              **{k: getattr(args, k) for k in ("frames", "noise_sigma", "seed", "background") if getattr(args, k) is not None}}
+    cfg = RbotSynthConfig(**fields)
+    root = write_rbot_dataset(cfg, args.out)
+    print(f"wrote an RBOT-layout dataset to {root}: {len(cfg.objects)} object(s) x {len(cfg.variants)} variant(s) "
+          f"({', '.join(cfg.variants)}), {cfg.frames} frames each")
     return 0
 
 
@@ -1211,6 +1234,11 @@ def build_parser() -> argparse.ArgumentParser:
     synth.add_argument("--mocap", nargs=2, metavar=("ASF", "AMC"),
                        help="articulated: the 26-DoF body model of a CMU skeleton driven by its motion (4 cameras)")
     synth.add_argument("--fps", type=_number(int, 1), help="--mocap: frame rate to keep of the 120 frames/s motion")
+    synth.add_argument("--rbot", type=_name_list, metavar="OBJECTS",
+                       help="write a dataset in the RBOT dataset's layout instead (for jaxtrack bench): these objects "
+                       "(box, teapot, cracker_box, milk_truck or mesh files, comma-separated) on one trajectory")
+    synth.add_argument("--variants", type=_name_list,
+                       help="--rbot: which of a_regular, b_dynamiclight, c_noisy (default a_regular,c_noisy)")
     synth.add_argument("--quiet", action="store_true", help="no progress bar")
     synth.set_defaults(func=_cmd_synth)
 

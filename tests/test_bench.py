@@ -244,7 +244,7 @@ def test_ray_local_run_equals_the_sequential_run(rbot_synth, sequential_bench, t
     # default level the workers' single thread gives bit-identical poses (experiments/results/bench_ray.md).
     report = run_bench(rbot_synth, tmp_path / "ray", BenchSettings(cues=("region",), resets=(False,)), workers=2,
                        single_thread=False, progress=False)
-    assert report.executor.startswith("ray (1 node(s), 2 CPUs)") and not report.failed
+    assert report.executor == "ray (1 node(s), 2 CPUs, 2 worker(s))" and not report.failed
     for variant in ("a_regular", "b_dynamiclight", "c_noisy"):
         ours = _pose_columns(tmp_path / "ray" / "runs" / "box" / variant / "S1.csv")
         assert ours == _pose_columns(out / "runs" / "box" / variant / "S1.csv"), variant
@@ -253,3 +253,17 @@ def test_ray_local_run_equals_the_sequential_run(rbot_synth, sequential_bench, t
         return (folder / "bench.md").read_text().split("## Success rate")[1].split("## Per sequence")[0]
 
     assert tables(tmp_path / "ray") == tables(out)
+
+
+def test_the_job_queue_keeps_a_workers_objects_and_leaves_no_worker_idle():
+    from jaxtrack.bench import BenchItem, BenchJob
+    from jaxtrack.bench._executor import JobQueue
+
+    jobs = [BenchJob(BenchItem(f"{o}/{v}", "rbot", "/d", (o, v), 1, o, v), 1, False)
+            for o, n in (("ape", 3), ("cat", 2), ("duck", 1)) for v in ("a", "b", "c")[:n]]
+    queue = JobQueue(jobs)
+    first = [queue.take(w).item.group for w in range(3)]
+    assert first == ["ape", "cat", "duck"]  # each worker starts its own object, the largest first
+    assert queue.take(1).item.name == "cat/b"  # worker 1 goes on with the object it has traced
+    assert queue.take(2).item.name == "ape/b"  # worker 2's object is done: it takes from the largest left
+    assert queue.take(0).item.name == "ape/c" and queue.take(0) is None and len(queue) == 0

@@ -140,7 +140,7 @@ def run_bench(dataset: str | os.PathLike, out: str | os.PathLike, settings: Benc
         else:
             info = run_on_ray(todo, settings, out, on_result, workers=workers, address=address, use_cache=use_cache,
                               single_thread=single_thread, tick=None if bar is None else bar.refresh)
-            executor = f"ray ({info['nodes']} node(s), {info['cpus']} CPUs)"
+            executor = f"ray ({info['nodes']} node(s), {info['cpus']} CPUs, {info['workers']} worker(s))"
     finally:
         if bar is not None:
             bar.close()

@@ -1,8 +1,10 @@
 """Running bench jobs: in this process one after another, or on Ray (a local instance started here, or a cluster
 joined by address), with a progress bar over the sequences that moves every second.
 
-Each Ray task takes one CPU; a worker process keeps its compiled programs for its next sequences and uses one XLA
-thread (`worker_env`), so `workers` processes share the cores instead of fighting over them. Every worker reads
+On Ray, each worker is an actor with one CPU: one process that keeps its traced and compiled programs for its next
+sequences (a new object's mesh costs a process a trace of the tracker's step, seconds; `JobQueue` hands a worker
+the objects it has seen) and uses one XLA thread (`worker_env`), so the processes share the cores instead of
+fighting over them. Every worker reads
 and writes the same on-disk compilation cache ($JAXTRACK_CACHE_DIR or ~/.cache/jaxtrack/xla).
 """
 
@@ -46,19 +48,64 @@ def _ray():
     return ray
 
 
+class JobQueue:
+    """Which job a free worker takes next: one of an object it has tracked before (a new object costs its process a
+    trace of the tracker's step, seconds), else the first job of the object with the most jobs nobody has started,
+    else one of the object with the most jobs left (so no worker idles while work remains)."""
+
+    def __init__(self, jobs: list[BenchJob]):
+        self.left: dict[str, list[BenchJob]] = {}
+        for job in jobs:
+            self.left.setdefault(job.item.group, []).append(job)
+        self.started: set[str] = set()
+        self.seen: dict[int, list[str]] = {}
+
+    def __len__(self) -> int:
+        return sum(len(v) for v in self.left.values())
+
+    def take(self, worker: int) -> BenchJob | None:
+        seen = self.seen.setdefault(worker, [])
+        for group in seen:
+            if self.left.get(group):
+                return self.left[group].pop(0)
+        fresh = [g for g, v in self.left.items() if v and g not in self.started]
+        busy = [g for g, v in self.left.items() if v]
+        if not busy:
+            return None
+        group = max(fresh or busy, key=lambda g: len(self.left[g]))
+        self.started.add(group)
+        seen.append(group)
+        return self.left[group].pop(0)
+
+
+def _failure(job: BenchJob, error: BaseException) -> dict:
+    return {"key": job.key, "name": job.item.name, "group": job.item.group, "variant": job.item.variant,
+            "step": job.step, "reset": job.reset, "error": f"{type(error).__name__}: {error}".splitlines()[0],
+            "wall_s": float("nan")}
+
+
+class BenchWorker:
+    """A Ray actor's body: one process that runs jobs one at a time and keeps its traced programs between them."""
+
+    def run(self, job: BenchJob, settings: BenchSettings, out: str, use_cache: bool) -> dict:
+        return run_job(job, settings, out, use_cache)
+
+
 def run_on_ray(jobs: list[BenchJob], settings: BenchSettings, out, on_result: Callable[[dict], None], *,
                workers: int | None = None, address: str | None = None, use_cache: bool = True,
                single_thread: bool = True, tick: Callable[[], None] | None = None) -> dict:
-    """Every job as a Ray task (one CPU each); `on_result` is called as each finishes, `tick` every second.
+    """Every job on a pool of Ray actors (one CPU and one process each; `JobQueue` picks their jobs); `on_result` is
+    called as each job finishes, `tick` every second.
 
     Args:
-        workers: CPUs of the local Ray instance started here (default: this machine's); ignored with `address`.
+        workers: worker processes (default: one per CPU of the local instance started here, or of the cluster).
+            A local instance is started with this many CPUs.
         address: an existing cluster ("auto", or host:port of `ray start --head`); its nodes must see the dataset
             and the output folder at the same paths.
         single_thread: one XLA thread per worker (False: XLA's default, as in this process; see `run_bench`).
 
     Returns:
-        {"nodes": how many alive nodes ran the bench, "cpus": their CPUs}.
+        {"nodes": how many alive nodes ran the bench, "cpus": their CPUs, "workers": the actors}.
     """
     ray = _ray()
     started = False
@@ -72,22 +119,40 @@ def run_on_ray(jobs: list[BenchJob], settings: BenchSettings, out, on_result: Ca
     try:
         nodes = [n for n in ray.nodes() if n.get("Alive")]
         cpus = int(sum(n.get("Resources", {}).get("CPU", 0) for n in nodes))
-        task = ray.remote(num_cpus=1, max_retries=0)(run_job)
-        pending = {task.remote(job, settings, str(out), use_cache): job for job in jobs}
+        n_actors = max(1, min(len(jobs), int(workers) if workers and not address else max(cpus, 1)))
+        actor_class = ray.remote(num_cpus=1, max_restarts=0)(BenchWorker)
+        actors = {i: actor_class.remote() for i in range(n_actors)}
+        queue = JobQueue(jobs)
+        pending = {}
+
+        def feed(i: int) -> None:
+            job = queue.take(i)
+            if job is not None:
+                pending[actors[i].run.remote(job, settings, str(out), use_cache)] = (i, job)
+
+        for i in list(actors):
+            feed(i)
         while pending:
             done, _ = ray.wait(list(pending), num_returns=1, timeout=1.0)
             for ref in done:
-                job = pending.pop(ref)
+                i, job = pending.pop(ref)
                 try:
                     result = ray.get(ref)
                 except Exception as e:  # noqa: BLE001 - a worker that died: the job is reported, the others go on
-                    result = {"key": job.key, "name": job.item.name, "group": job.item.group,
-                              "variant": job.item.variant, "step": job.step, "reset": job.reset,
-                              "error": f"{type(e).__name__}: {e}".splitlines()[0], "wall_s": float("nan")}
+                    on_result(_failure(job, e))
+                    actors.pop(i, None)  # its process is gone (max_restarts=0)
+                    if not actors:  # nobody left to run the rest: each is reported
+                        for _, other in list(pending.values()):
+                            on_result(_failure(other, RuntimeError("every Ray worker died")))
+                        pending.clear()
+                        while (other := queue.take(-1)) is not None:
+                            on_result(_failure(other, RuntimeError("every Ray worker died")))
+                    continue
                 on_result(result)
+                feed(i)
             if tick is not None:
                 tick()
-        return {"nodes": len(nodes), "cpus": cpus}
+        return {"nodes": len(nodes), "cpus": cpus, "workers": n_actors}
     finally:
         if started:
             ray.shutdown()

@@ -57,7 +57,8 @@ class RbotSynthConfig:
         names = [pathlib.Path(o).stem for o in self.objects]
         if len(set(names)) != len(names):
             raise ValueError(f"RbotSynthConfig.objects: two objects share a folder name: {names}")
-        SynthConfig(**self._synth(self.objects[0]))  # every other field checked as SynthConfig checks it
+        for obj in self.objects:  # every object and field checked as SynthConfig checks them, before anything is written
+            SynthConfig(**self._synth(obj))
 
     def _synth(self, obj: str, **extra) -> dict:
         return {"object": obj, "frames": self.frames, "width": self.width, "height": self.height, "focal": self.focal,
