@@ -764,7 +764,8 @@ def _cmd_bench(args) -> int:
             workers = 0
     out = pathlib.Path(args.out) if args.out else pathlib.Path(f"bench-{pathlib.Path(args.dataset).resolve().name}")
     report = run_bench(args.dataset, out, settings, layout=args.layout, objects=args.objects, variants=args.variants,
-                       workers=workers, address=args.address, use_cache=not args.no_cache, progress=not args.quiet)
+                       workers=workers, address=args.address, use_cache=not args.no_cache,
+                       timeout_s=None if args.timeout_min is None else 60.0 * args.timeout_min, progress=not args.quiet)
     ran = len(report.results) - len(report.skipped)
     print(f"benched {len(report.results)} run(s) of {args.dataset} ({ran} now, {len(report.skipped)} found finished in "
           f"{out}) in {report.wall_s:.1f} s on {report.executor}")
@@ -1163,6 +1164,9 @@ def build_parser() -> argparse.ArgumentParser:
                        "CPU); 0: one after another in this process, without Ray")
     bench.add_argument("--address", help="join a running Ray cluster (host:port of `ray start --head`, or auto); every "
                        "node must see DATASET and -o at the same paths")
+    bench.add_argument("--timeout-min", dest="timeout_min", type=_number(float, 0, low_open=True), metavar="M",
+                       help="on Ray: after M minutes report the runs not finished as failed and stop (run the same "
+                       "command again to continue)")
     bench.add_argument("--cues", type=_cue_list, default=CUE_CHOICES, help="as jaxtrack track (default region,flow,sift)")
     bench.add_argument("--region", choices=region_choices(), default=None, help="as jaxtrack track")
     bench.add_argument("--working-shape", dest="working_shape", metavar="HxW|native", type=_working_shape,

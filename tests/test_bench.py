@@ -243,7 +243,7 @@ def test_ray_local_run_equals_the_sequential_run(rbot_synth, sequential_bench, t
     # thread and several round differently in the last bits and the tracking drifts apart by up to 0.3 mm; at the
     # default level the workers' single thread gives bit-identical poses (experiments/results/bench_ray.md).
     report = run_bench(rbot_synth, tmp_path / "ray", BenchSettings(cues=("region",), resets=(False,)), workers=2,
-                       single_thread=False, progress=False)
+                       single_thread=False, timeout_s=240, progress=False)
     assert report.executor == "ray (1 node(s), 2 CPUs, 2 worker(s))" and not report.failed
     for variant in ("a_regular", "b_dynamiclight", "c_noisy"):
         ours = _pose_columns(tmp_path / "ray" / "runs" / "box" / variant / "S1.csv")
@@ -267,3 +267,13 @@ def test_the_job_queue_keeps_a_workers_objects_and_leaves_no_worker_idle():
     assert queue.take(1).item.name == "cat/b"  # worker 1 goes on with the object it has traced
     assert queue.take(2).item.name == "ape/b"  # worker 2's object is done: it takes from the largest left
     assert queue.take(0).item.name == "ape/c" and queue.take(0) is None and len(queue) == 0
+
+
+def test_a_bench_past_its_timeout_reports_the_unfinished_runs_and_stops(rbot_synth, tmp_path):
+    pytest.importorskip("ray")
+    from jaxtrack.bench import BenchSettings, run_bench
+
+    report = run_bench(rbot_synth, tmp_path / "late", BenchSettings(cues=("region",), resets=(False,)), workers=1,
+                       single_thread=False, timeout_s=0.5, progress=False)
+    assert len(report.failed) == 3 and all("timed out" in r["error"] for r in report.results)
+    assert "## Failed (3)" in report.markdown.read_text()

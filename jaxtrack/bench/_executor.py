@@ -11,6 +11,7 @@ and writes the same on-disk compilation cache ($JAXTRACK_CACHE_DIR or ~/.cache/j
 from __future__ import annotations
 
 import os
+import time
 from collections.abc import Callable
 
 from ._jobs import BenchJob, BenchSettings, run_job
@@ -93,7 +94,8 @@ class BenchWorker:
 
 def run_on_ray(jobs: list[BenchJob], settings: BenchSettings, out, on_result: Callable[[dict], None], *,
                workers: int | None = None, address: str | None = None, use_cache: bool = True,
-               single_thread: bool = True, tick: Callable[[], None] | None = None) -> dict:
+               single_thread: bool = True, timeout_s: float | None = None,
+               tick: Callable[[], None] | None = None) -> dict:
     """Every job on a pool of Ray actors (one CPU and one process each; `JobQueue` picks their jobs); `on_result` is
     called as each job finishes, `tick` every second.
 
@@ -103,6 +105,8 @@ def run_on_ray(jobs: list[BenchJob], settings: BenchSettings, out, on_result: Ca
         address: an existing cluster ("auto", or host:port of `ray start --head`); its nodes must see the dataset
             and the output folder at the same paths.
         single_thread: one XLA thread per worker (False: XLA's default, as in this process; see `run_bench`).
+        timeout_s: after this many seconds the runs not finished are reported as failed ("timed out") and the
+            workers are stopped.
 
     Returns:
         {"nodes": how many alive nodes ran the bench, "cpus": their CPUs, "workers": the actors}.
@@ -132,7 +136,18 @@ def run_on_ray(jobs: list[BenchJob], settings: BenchSettings, out, on_result: Ca
 
         for i in list(actors):
             feed(i)
+        deadline = None if timeout_s is None else time.monotonic() + float(timeout_s)
         while pending:
+            if deadline is not None and time.monotonic() > deadline:
+                late = [job for _, job in pending.values()]
+                while (job := queue.take(-1)) is not None:
+                    late.append(job)
+                for job in late:
+                    on_result(_failure(job, TimeoutError(f"timed out: the bench's {timeout_s:g} s were over")))
+                for actor in actors.values():
+                    ray.kill(actor)
+                pending.clear()
+                break
             done, _ = ray.wait(list(pending), num_returns=1, timeout=1.0)
             for ref in done:
                 i, job = pending.pop(ref)
