@@ -277,3 +277,30 @@ def test_a_bench_past_its_timeout_reports_the_unfinished_runs_and_stops(rbot_syn
                        single_thread=False, timeout_s=0.5, progress=False)
     assert len(report.failed) == 3 and all("timed out" in r["error"] for r in report.results)
     assert "## Failed (3)" in report.markdown.read_text()
+
+
+def test_the_bop_toolkits_layout_gives_a_run_per_scene_and_object(tmp_path):
+    import trimesh
+
+    from jaxtrack.bench import detect_layout, find_items
+    from jaxtrack.io import SequenceError, bop_scenes, read_bop_scene, write_camera_view
+
+    root = tmp_path / "ycbv"
+    (root / "models").mkdir(parents=True)
+    for o in (1, 2):
+        trimesh.creation.box(extents=(50, 50, 50)).export(root / "models" / f"obj_{o:06d}.ply")
+    T = np.eye(4)
+    T[2, 3] = 400.0
+    write_camera_view(root / "test" / "000048", np.zeros((2, 24, 32, 3), np.uint8), np.diag([30.0, 30.0, 1.0]),
+                      {1: np.stack([T, T]), 2: np.stack([T, T])}, np.eye(4))
+    write_camera_view(root / "test" / "000049", np.zeros((2, 24, 32, 3), np.uint8), np.diag([30.0, 30.0, 1.0]),
+                      {2: np.stack([T, T])}, np.eye(4))
+    assert bop_scenes(root) == [("test", "000048"), ("test", "000049")] and detect_layout(root) == "bop"
+    seq = read_bop_scene(root, "test", "000048")
+    assert sorted(seq.model_paths) == [1, 2] and seq.num_frames == 2 and seq.root == root / "test" / "000048"
+    items = find_items(root)
+    assert [(i.name, i.obj_id, i.variant) for i in items] == [
+        ("test/000048/obj_1", 1, "test/000048"), ("test/000048/obj_2", 2, "test/000048"), ("test/000049/obj_2", 2, "test/000049")]
+    assert items[2].load().views[0].folder == root / "test" / "000049"
+    with pytest.raises(SequenceError, match="no such BOP scene folder"):
+        read_bop_scene(root, "test", "000050")

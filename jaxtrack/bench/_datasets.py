@@ -5,7 +5,8 @@ Layouts:
     rbot   RBOT's own (poses_first.txt, camera_calibration.txt, <object>/frames/<variant>NNNN.png): an object ×
            variant per item (`jaxtrack.io.read_rbot_sequence`); d_occlusion's occluding squirrel is not tracked.
     bcot   BCOT's (models/, <scene>/K.txt, <scene>/<object>/pose.txt): a scene × object per item.
-    bop    this project's BOP layout (`jaxtrack.io.read_sequence`): one sequence folder, or a folder of them; an item per
+    bop    the BOP toolkit's layout (DATASET/models/, DATASET/<split>/<scene>/: `jaxtrack.io.read_bop_scene`), or this
+           project's (`jaxtrack.io.read_sequence`): one sequence folder, or a folder of them; an item per scene or
            sequence and object with a first ground-truth pose (a scene with several objects gives one track per object).
 """
 
@@ -43,13 +44,15 @@ class BenchItem:
 
     def load(self):
         """The item's `jaxtrack.io.Sequence`."""
-        from ..io import read_bcot_sequence, read_rbot_sequence, read_sequence
+        from ..io import read_bcot_sequence, read_bop_scene, read_rbot_sequence, read_sequence
 
         if self.layout == "rbot":
             return read_rbot_sequence(self.dataset, *self.parts)
         if self.layout == "bcot":
             return read_bcot_sequence(self.dataset, *self.parts)
         if self.layout == "bop":
+            if len(self.parts) == 2:  # the BOP toolkit's DATASET/<split>/<scene>
+                return read_bop_scene(self.dataset, *self.parts)
             return read_sequence(pathlib.Path(self.dataset) / self.parts[0] if self.parts[0] else self.dataset)
         raise ValueError(f"BenchItem {self.name}: unknown layout {self.layout!r} (one of {', '.join(LAYOUTS)})")
 
@@ -76,21 +79,31 @@ def detect_layout(dataset: str | os.PathLike) -> str:
                      "numbered camera folders) or a folder of them")
 
 
-def _bop_items(root: pathlib.Path) -> list[BenchItem]:
-    from ..io import is_bop_folder, read_sequence
+def _first_posed(seq) -> list[int]:
+    """The objects of `seq` with a mesh and a ground-truth pose in the first frame."""
+    view = seq.views[0]
+    return [o for o in sorted(seq.model_paths)
+            if o in view.T_cam_obj and np.all(np.isfinite(view.T_cam_obj[o][0]))]
 
+
+def _bop_items(root: pathlib.Path) -> list[BenchItem]:
+    from ..io import bop_scenes, is_bop_folder, read_bop_scene, read_sequence
+
+    scenes = bop_scenes(root)
+    if scenes:  # the BOP toolkit's layout: DATASET/models + DATASET/<split>/<scene>
+        items = []
+        for split, scene in scenes:
+            label = f"{split}/{scene}"
+            items += [BenchItem(f"{label}/obj_{o}", "bop", str(root), (split, scene), o, f"obj_{o}", label)
+                      for o in _first_posed(read_bop_scene(root, split, scene))]
+        return items
     folders = [root] if is_bop_folder(root) else sorted(p for p in root.iterdir() if p.is_dir() and is_bop_folder(p))
     items = []
     for folder in folders:
         rel = "" if folder == root else folder.name
-        seq = read_sequence(folder)
-        view = seq.views[0]
-        for o in sorted(seq.model_paths):
-            gt = view.T_cam_obj.get(o)
-            if gt is not None and np.all(np.isfinite(gt[0])):
-                label = rel or folder.name
-                items.append(BenchItem(f"{label}/obj_{o}", "bop", str(root), (rel,), o,
-                                       group=f"obj_{o}", variant=label))
+        label = rel or folder.name
+        items += [BenchItem(f"{label}/obj_{o}", "bop", str(root), (rel,), o, f"obj_{o}", label)
+                  for o in _first_posed(read_sequence(folder))]
     return items
 
 

@@ -23,6 +23,8 @@ _EXPORTS = {
     "read_sequence": "_bop",
     "write_bop_results": "_bop",
     "frame_step_sequence": "_bop",
+    "bop_scenes": "_bop",
+    "read_bop_scene": "_bop",
     "bcot_sequences": "_bcot",
     "read_bcot_intrinsics": "_bcot",
     "read_bcot_sequence": "_bcot",
@@ -89,8 +91,10 @@ if TYPE_CHECKING:  # static analysers and IDEs see the real definitions
     from ._bop import CameraView as CameraView
     from ._bop import Sequence as Sequence
     from ._bop import SequenceError as SequenceError
+    from ._bop import bop_scenes as bop_scenes
     from ._bop import frame_step_sequence as frame_step_sequence
     from ._bop import read_bop_results as read_bop_results
+    from ._bop import read_bop_scene as read_bop_scene
     from ._bop import read_camera_view as read_camera_view
     from ._bop import read_sequence as read_sequence
     from ._bop import write_bop_results as write_bop_results

@@ -284,16 +284,8 @@ def _read_joints(values, into: dict, i: int, n: int, gt_path, frame, what) -> No
         into.setdefault(name, np.full(n, np.nan))[i] = float(value)
 
 
-def read_sequence(root: str | os.PathLike) -> Sequence:
-    """Read a BOP-layout sequence folder (meshes are located, not loaded: see `load_mesh`).
-
-    Raises:
-        SequenceError: naming the missing file, the malformed JSON or field, or mismatched frames.
-    """
-    root = pathlib.Path(root)
-    if not root.is_dir():
-        raise SequenceError(f"{root}: not a directory")
-    models_dir = root / "models"
+def _model_paths(models_dir: pathlib.Path) -> dict:
+    """obj_id → the obj_XXXXXX mesh file in `models_dir`."""
     if not models_dir.is_dir():
         raise SequenceError(f"{models_dir}: missing (the object meshes)")
     model_paths = {}
@@ -304,6 +296,53 @@ def read_sequence(root: str | os.PathLike) -> Sequence:
             model_paths[int(p.stem[4:])] = p
     if not model_paths:
         raise SequenceError(f"{models_dir}: no obj_XXXXXX mesh ({', '.join(MODEL_SUFFIXES)})")
+    return model_paths
+
+
+def bop_scenes(dataset: str | os.PathLike) -> list[tuple[str, str]]:
+    """(split, scene) of every scene of a BOP dataset as the BOP toolkit lays it out: DATASET/models/obj_XXXXXX.ply
+    and DATASET/<split>/<scene>/ with rgb/ (or gray/), scene_camera.json and scene_gt.json (test, val, test_primesense,
+    ...), sorted."""
+    root = pathlib.Path(dataset)
+    if not (root / "models").is_dir():
+        return []
+    out = []
+    for split in sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith("models")):
+        out += [(split.name, scene.name) for scene in sorted(split.iterdir())
+                if scene.is_dir() and scene.name.isdigit() and (scene / "scene_gt.json").is_file()]
+    return out
+
+
+def read_bop_scene(dataset: str | os.PathLike, split: str, scene: str) -> Sequence:
+    """One scene of a BOP dataset in the BOP toolkit's layout (`bop_scenes`) as a one-camera `Sequence`: its meshes
+    from DATASET/models, its frames, calibration and ground truth from DATASET/<split>/<scene> (which is laid out as
+    this project's camera folder). Every object of the scene can be tracked (one instance per object and frame).
+
+    Raises:
+        SequenceError: naming the missing folder or file, or the malformed field.
+    """
+    root = pathlib.Path(dataset)
+    folder = root / split / scene
+    if not folder.is_dir():
+        raise SequenceError(f"{folder}: no such BOP scene folder (scenes in {root}: {bop_scenes(root)[:6]})")
+    model_paths = _model_paths(root / "models")
+    view = read_camera_view(folder)
+    for obj_id in view.T_cam_obj:
+        if obj_id not in model_paths:
+            raise SequenceError(f"{folder / 'scene_gt.json'}: obj_id {obj_id} has no mesh {root}/models/obj_{obj_id:06d}.*")
+    return Sequence(folder, model_paths, [view])
+
+
+def read_sequence(root: str | os.PathLike) -> Sequence:
+    """Read a BOP-layout sequence folder (meshes are located, not loaded: see `load_mesh`).
+
+    Raises:
+        SequenceError: naming the missing file, the malformed JSON or field, or mismatched frames.
+    """
+    root = pathlib.Path(root)
+    if not root.is_dir():
+        raise SequenceError(f"{root}: not a directory")
+    model_paths = _model_paths(root / "models")
     cam_dirs = sorted(p for p in root.iterdir() if p.is_dir() and p.name.isdigit())
     if not cam_dirs:
         raise SequenceError(f"{root}: no camera folder (000000/)")
