@@ -29,7 +29,6 @@ import argparse
 import json
 import os
 import pathlib
-import platform
 import shutil
 import subprocess
 import sys
@@ -37,6 +36,8 @@ import tempfile
 import time
 
 import numpy as np
+
+from jaxtrack.bench import command_line, output_path, report_header, save_text, start_experiment
 
 RESULTS = pathlib.Path(__file__).resolve().parent / "results"
 SHARED = pathlib.Path(os.environ.get("JAXTRACK_SHARED", pathlib.Path(__file__).resolve().parents[2] / "shared"))
@@ -202,19 +203,7 @@ def stage_breakdown(tracker, state, frames_np, repeats: int) -> dict:
 
 def worker(spec: dict) -> dict:
     """One configuration in this (fresh) process: first frame, then timed frames, then the breakdown."""
-    import cv2
-
-    cv2.setNumThreads(1)  # OpenCV's idle workers compete with XLA on a 2-core machine
-    import jax
-
-    if spec["cache_dir"]:
-        try:
-            from jaxtrack import enable_compilation_cache  # what `jaxtrack track` does
-        except ImportError:  # pragma: no cover - the CLI helper moved: same settings by hand
-            def enable_compilation_cache(path):
-                jax.config.update("jax_compilation_cache_dir", path)
-                jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
-        enable_compilation_cache(spec["cache_dir"])
+    start_experiment(cache=spec["cache_dir"] or False)  # OpenCV on one thread; this configuration's cache folder
     import equinox as eqx
 
     from jaxtrack.geometry import make_camera, rotation_error_deg, stack_cameras
@@ -341,19 +330,6 @@ def run_m3t(sequence: pathlib.Path, config: str, out_dir: pathlib.Path) -> dict:
 
 
 # --- the report ----------------------------------------------------------------------------------------
-def source_state() -> str:
-    """The commit measured, and whether the library had uncommitted changes (work in progress)."""
-    root = pathlib.Path(__file__).resolve().parents[1]
-    try:
-        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--", "jaxtrack"], cwd=root, capture_output=True, text=True,
-                               check=True).stdout.split("\n")
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown (not a git checkout)"
-    changed = sorted(line[3:] for line in dirty if line.strip())
-    return f"commit {head}" + (f" with uncommitted changes in {', '.join(changed)}" if changed else "")
-
-
 def _warm(warm) -> str:
     if warm is None:
         return "not measured (--quick)"
@@ -365,19 +341,13 @@ def _fmt(x, digits=1):
 
 
 def report(args, command, width_px, size, rows, m3t, load_start, load_end, elapsed_s) -> str:
-    import jax
-
+    header = report_header(command, load_start, load_end, elapsed_s)
+    if max(load_start[0], load_end[0], load_start[1]) > 1.5:
+        header[-1] += " Other jobs shared the machine during this run: times are upper bounds (they vary ~2x between runs)."
     lines = [
         "# Tracker speed",
         "",
-        f"Command: `{command}`  ",
-        (f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, {jax.devices()[0].platform}, "
-         f"JAX {jax.__version__}, float32; OpenCV single-threaded.  "),
-        f"Source: {source_state()}  ",
-        (f"Load average (1, 5, 15 min) at the start {tuple(round(x, 2) for x in load_start)}, at the end "
-         f"{tuple(round(x, 2) for x in load_end)}; run took {elapsed_s / 60:.1f} min. "
-         + ("Other jobs shared the machine during this run: times are upper bounds (they vary ~2x between runs)."
-            if max(load_start[0], load_end[0], load_start[1]) > 1.5 else "")),
+        *header,
         "",
         (f"Sequence: synthetic textured box, {size[0]}x{size[1]}, box {width_px} px wide in frame 0 of camera 0, "
          f"random 6-DoF motion (~{10 * args.scale:.0f} px, 3° per frame), {args.frames} frames; cameras on a ring, "
@@ -530,8 +500,8 @@ def main(argv=None):
             assert len(working_shape) == 2
         except (ValueError, AssertionError):
             raise SystemExit(f"bench_track: --working-shape must be HxW, e.g. 96x128, got {args.working_shape!r}") from None
-    command = " ".join(["python experiments/bench_track.py", *(sys.argv[1:] if argv is None else argv)])
-    started, load_start = time.perf_counter(), os.getloadavg()
+    command = command_line(__file__, argv)
+    clock = start_experiment(cache=False)  # each configuration's subprocess has its own cache
     work = pathlib.Path(tempfile.mkdtemp(prefix="bench_track_"))
     try:
         cameras = max(n for _, n in configs)
@@ -539,7 +509,7 @@ def main(argv=None):
         size = (round(640 * args.scale), round(480 * args.scale))
         rows, skipped, failed = {}, [], []
         for cues, cams in configs:
-            if args.budget_min is not None and time.perf_counter() - started > 60 * args.budget_min:
+            if clock.over(args.budget_min):
                 skipped.append(f"{cues}:{cams}")
                 continue
             cache = work / f"xla_{cues}_{cams}"  # a fresh, empty on-disk cache per configuration
@@ -566,7 +536,7 @@ def main(argv=None):
                 m3t = {name: run_m3t(seq, name, work) for name in ("region", "regtex")}
             except (RuntimeError, subprocess.TimeoutExpired) as e:
                 failed.append(f"M3T ({type(e).__name__}: {str(e).strip().splitlines()[-1][:300]})")
-        text = report(args, command, width_px, size, rows, m3t, load_start, os.getloadavg(), time.perf_counter() - started)
+        text = report(args, command, width_px, size, rows, m3t, clock.load_start, os.getloadavg(), clock.elapsed_s())
         if skipped:
             text += f"\nNot run, the time budget (--budget-min {args.budget_min:g}) was spent: {', '.join(skipped)}.\n"
         if failed:
@@ -574,10 +544,7 @@ def main(argv=None):
     finally:
         shutil.rmtree(work, ignore_errors=True)
     print(text)
-    out = args.out if args.out is not None else (None if args.quick else str(RESULTS / "bench_track.md"))
-    if out is not None:
-        pathlib.Path(out).parent.mkdir(parents=True, exist_ok=True)
-        pathlib.Path(out).write_text(text)
+    save_text(output_path(args.out, RESULTS / "bench_track.md", args.quick), text)
     return rows, m3t
 
 

@@ -16,14 +16,12 @@ import argparse
 import os
 import pathlib
 import shutil
-import sys
 import tempfile
-import time
 
 import numpy as np
-
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 import track_presets as tp
+
+from jaxtrack.bench import command_line, start_experiment
 
 RESULTS = pathlib.Path(__file__).resolve().parent / "results"
 
@@ -65,14 +63,12 @@ def main(argv=None):
     ap.add_argument("--seq-dir", default=None, help="keep the rendered sequences here (and reuse them)")
     ap.add_argument("--out", default=str(RESULTS / "cue_subsets.md"))
     args = ap.parse_args(argv)
-    command = " ".join(["python experiments/cue_subsets.py", *(sys.argv[1:] if argv is None else argv)])
-    import cv2
+    command = command_line(__file__, argv)
 
     from jaxtrack.io import read_sequence
     from jaxtrack.track._tracker import FLOW_STRUCTURE
 
-    cv2.setNumThreads(1)
-    started, load = time.perf_counter(), os.getloadavg()
+    clock = start_experiment(cache=False)
     seq_dir = pathlib.Path(args.seq_dir) if args.seq_dir else pathlib.Path(tempfile.mkdtemp(prefix="cues_"))
     lines = ["# Which cue loses a sequence (no resets)", "", f"`{command}`", "",
              (f"Camera 0, the tracker's defaults but for the cues; the flow's structure factor k = {FLOW_STRUCTURE:g} "
@@ -95,7 +91,7 @@ def main(argv=None):
     finally:
         if not args.seq_dir:
             shutil.rmtree(seq_dir, ignore_errors=True)
-    lines += ["", (f"Run took {(time.perf_counter() - started) / 60:.1f} min; load average {load[0]:.2f} → {os.getloadavg()[0]:.2f} "
+    lines += ["", (f"Run took {clock.minutes():.1f} min; load average {clock.load_start[0]:.2f} → {os.getloadavg()[0]:.2f} "
               "(2 cores).")]
     text = "\n".join(lines) + "\n"
     out = pathlib.Path(args.out)

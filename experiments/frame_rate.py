@@ -33,11 +33,11 @@ import sys
 import tempfile
 import time
 
-import numpy as np
-
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 import noise_table as nt  # shared run / scoring helpers of the issue-12 experiments
+import numpy as np
 import track_presets as tp
+
+from jaxtrack.bench import command_line, output_path, save_text, start_experiment
 
 RESULTS = pathlib.Path(__file__).resolve().parent / "results"
 SUBSETS = ("region+flow+sift", "region", "region+flow", "region+sift", "flow+sift")
@@ -181,16 +181,14 @@ def main(argv=None):
     steps = tuple(int(s) for s in args.steps.split(","))
     if any(s not in STEPS for s in steps):
         raise SystemExit(f"frame_rate: --steps must be among {STEPS}")
-    command = " ".join(["python experiments/frame_rate.py", *(sys.argv[1:] if argv is None else argv)])
+    command = command_line(__file__, argv)
 
-    import cv2
     import jax
 
     from jaxtrack.io import read_sequence
 
-    cv2.setNumThreads(1)  # OpenCV's idle workers compete with XLA on a 2-core machine
+    clock = start_experiment(cache=False)
     use_m3t = not args.no_m3t and tp.m3t_available()
-    started, load_start = time.perf_counter(), os.getloadavg()
     seq_dir = pathlib.Path(args.seq_dir) if args.seq_dir else pathlib.Path(tempfile.mkdtemp(prefix="frame_rate_"))
     work = pathlib.Path(tempfile.mkdtemp(prefix="frame_rate_out_"))
     rows, seqs, sizes, skipped, failed = [], {}, {}, [], []
@@ -210,7 +208,7 @@ def main(argv=None):
         for subset in subsets:
             for v in variants:
                 for s in steps:
-                    if args.budget_min is not None and time.perf_counter() - started > 60 * args.budget_min:
+                    if clock.over(args.budget_min):
                         skipped.append((v, subset, s))
                         continue
                     t = time.perf_counter()
@@ -223,21 +221,18 @@ def main(argv=None):
                         continue
                     rows.append({"variant": v, "step": s, "method": "jaxtrack", "cues": subset, **r})
                     print(f"[frame_rate] {v} S={s} {subset}: {tp._pct(r['success'])} ({r['compiles']} compiles, "
-                          f"{time.perf_counter() - t:.0f} s, {(time.perf_counter() - started) / 60:.1f} min)", file=sys.stderr, flush=True)
+                          f"{time.perf_counter() - t:.0f} s, {clock.minutes():.1f} min)", file=sys.stderr, flush=True)
             if len(subsets) > 1:
                 jax.clear_caches()  # this subset's programs are not used again
-        text = report(args, command, variants, steps, subsets, rows, sizes, load_start, os.getloadavg(),
-                      time.perf_counter() - started, skipped, failed)
+        text = report(args, command, variants, steps, subsets, rows, sizes, clock.load_start, os.getloadavg(),
+                      clock.elapsed_s(), skipped, failed)
     finally:
         shutil.rmtree(work, ignore_errors=True)
         if not args.seq_dir:
             shutil.rmtree(seq_dir, ignore_errors=True)
     print(text)
-    out = args.out if args.out is not None else (None if args.quick else str(RESULTS / "frame_rate.md"))
-    if out is not None:
-        pathlib.Path(out).parent.mkdir(parents=True, exist_ok=True)
-        pathlib.Path(out).write_text(text)
-    figure = args.plot if args.plot is not None else (None if args.quick else str(RESULTS / "frame_rate.png"))
+    save_text(output_path(args.out, RESULTS / "frame_rate.md", args.quick), text)
+    figure = output_path(args.plot, RESULTS / "frame_rate.png", args.quick)
     if figure is not None and rows:
         plot(figure, variants, steps, rows)
     return rows

@@ -29,8 +29,7 @@ import time
 
 import numpy as np
 
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
-from bench_track import source_state
+from jaxtrack.bench import command_line, save_text, source_state, start_experiment
 
 RESULTS = pathlib.Path(__file__).resolve().parent / "results"
 SHARED = pathlib.Path(os.environ.get("JAXTRACK_SHARED", pathlib.Path(__file__).resolve().parents[2] / "shared"))
@@ -281,9 +280,6 @@ def plot(path: pathlib.Path, rows) -> None:
 
 
 def main(argv=None):
-    import cv2
-
-    cv2.setNumThreads(1)
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--motions", default="walk,run", help="comma-separated: walk, run")
     ap.add_argument("--fps", default="120,40,30,24", help="comma-separated frame rates dividing 120")
@@ -314,15 +310,14 @@ def main(argv=None):
         if 120 % f:
             raise SystemExit(f"human_table2: --fps {f} does not divide 120")
     subsets = [c.strip() for c in args.cues.split(",") if c.strip()]
-    command = "python experiments/human_table2.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    command = command_line(__file__, argv)
+    clock = start_experiment(cache=False)
     if args.motion_stats:
         text = (f"# Joint motion per tracked frame (ground truth)\n\nCommand: `{command}`  \nThe first {args.frames} "
                 "mocap frames of each motion, subsampled to each frame rate.\n\n" + motion_steps(args.motions, args.frames, fps_list))
         print(text)
         (RESULTS / "human_motion_steps.md").write_text(text)
         return text
-    load0 = os.getloadavg()[0]
-    start = time.perf_counter()
     folder = pathlib.Path(args.seq_dir) if args.seq_dir else pathlib.Path(tempfile.mkdtemp(prefix="human_table2_"))
     rows = {}
     overlay_done = False
@@ -331,7 +326,7 @@ def main(argv=None):
             seqs = write_motion_sequences(motion, args.frames, fps_list, args.scale, folder, args.appearance)
             for fps in fps_list:
                 key = (motion, subset, fps)
-                if (time.perf_counter() - start) / 60 > args.budget_min:
+                if clock.over(args.budget_min):
                     rows[key] = None
                     continue
                 want_overlay = not overlay_done and subset == "region+flow+sift" and args.overlay
@@ -343,19 +338,16 @@ def main(argv=None):
                     overlay_done = True
                 rows[key] = r if r is not None else "failed"
                 if args.out:  # after every run: a crash later (e.g. LLVM out of map space) keeps the rows
-                    pathlib.Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-                    pathlib.Path(args.out).write_text(report(args, command, rows, time.perf_counter() - start,
-                                                             (load0, os.getloadavg()[0])))
+                    save_text(args.out, report(args, command, rows, clock.elapsed_s(), (clock.load_start[0], os.getloadavg()[0])))
                 if r is None:
                     continue
                 err, fail = _cell(r)
                 print(f"{motion:5s} {subset:17s} {fps:3d} fps: {err}°, failure {fail}, root {r['root_deg']:.2f}° "
                       f"{r['root_mm']:.1f} mm, {r['s_per_frame']:.1f} s/frame", flush=True)
-    text = report(args, command, rows, time.perf_counter() - start, (load0, os.getloadavg()[0]))
+    text = report(args, command, rows, clock.elapsed_s(), (clock.load_start[0], os.getloadavg()[0]))
     print(text)
     if args.out:
-        pathlib.Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        pathlib.Path(args.out).write_text(text)
+        save_text(args.out, text)
     if args.plot:
         plot(pathlib.Path(args.plot), rows)
     return rows

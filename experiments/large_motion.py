@@ -26,17 +26,15 @@ import argparse
 import dataclasses
 import os
 import pathlib
-import platform
 import shutil
 import sys
 import tempfile
 import time
 
 import numpy as np
-
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 import track_presets as tp  # the presets' sequence writing, one definition
-from bench_track import source_state
+
+from jaxtrack.bench import command_line, output_path, report_header, save_text, start_experiment
 
 RESULTS = pathlib.Path(__file__).resolve().parent / "results"
 CUE_SETS = "region,flow,sift,region+flow+sift"
@@ -104,19 +102,12 @@ def trial_sequences(args, seq_dir: pathlib.Path):
 
 
 def report(command, args, preset, base, motions, cue_sets, results, diameter, skipped, failed, load_start, load_end, elapsed_s) -> str:
-    import jax
-
     px = np.array([m[0] for m in motions])
     deg = np.array([m[1] for m in motions])
     lines = [
         "# Large motion between two frames (paper Fig. 5)",
         "",
-        f"Command: `{command}`  ",
-        (f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, {jax.devices()[0].platform}, "
-         f"JAX {jax.__version__}, float32; OpenCV single-threaded.  "),
-        f"Source: {source_state()}  ",
-        (f"Load average (1, 5, 15 min) at the start {tuple(round(x, 2) for x in load_start)}, at the end "
-         f"{tuple(round(x, 2) for x in load_end)}; run took {elapsed_s / 60:.1f} min."),
+        *report_header(command, load_start, load_end, elapsed_s),
         "",
         (f"Trials: {len(motions)} two-frame sequences of the {preset} preset's object at {base.width}x{base.height} (seeds "
          f"0-{len(motions) - 1}); measured motion of the projected object centre {px.mean():.1f} px (range {px.min():.1f}-"
@@ -242,20 +233,14 @@ def main(argv=None):
     if args.step_px < 0 or args.step_deg < 0:
         raise SystemExit("large_motion: --step-px and --step-deg must be ≥ 0")
     cue_sets = tp.parse_subsets(args.cues)
-    command = " ".join(["python experiments/large_motion.py", *(sys.argv[1:] if argv is None else argv)])
+    command = command_line(__file__, argv)
 
-    import cv2
     import jax
 
     from jaxtrack.io import load_trimesh
     from jaxtrack.track import model_diameter
 
-    cv2.setNumThreads(1)  # OpenCV's idle workers compete with XLA on a 2-core machine
-    if not args.quick:  # a rerun (or the next script) loads compiled steps instead of compiling them again
-        from jaxtrack import enable_compilation_cache
-
-        enable_compilation_cache()
-    started, load_start = time.perf_counter(), os.getloadavg()
+    clock = start_experiment(cache=not args.quick)
     seq_dir = pathlib.Path(args.seq_dir) if args.seq_dir else pathlib.Path(tempfile.mkdtemp(prefix="large_motion_"))
     results, skipped, failed = {}, [], []
     try:
@@ -263,7 +248,7 @@ def main(argv=None):
         tm = load_trimesh(trials[0][0].model_paths[1])
         diameter = float(model_diameter(np.asarray(tm.convex_hull.vertices)))
         for cues in cue_sets:
-            if args.budget_min is not None and time.perf_counter() - started > 60 * args.budget_min:
+            if clock.over(args.budget_min):
                 skipped.append(cues)
                 continue
             t = time.perf_counter()
@@ -281,22 +266,19 @@ def main(argv=None):
             rs = results[cues]
             print(f"[large_motion] {cues}: final rot {np.mean([r['final_rot'] for r in rs]):.2f}°, "
                   f"{sum(r['compiled'] for r in rs)} compiles ({time.perf_counter() - t:.0f} s, "
-                  f"{(time.perf_counter() - started) / 60:.1f} min)", file=sys.stderr, flush=True)
+                  f"{clock.minutes():.1f} min)", file=sys.stderr, flush=True)
             if not args.quick:
                 jax.clear_caches()  # this cue set's programs are not used again
         text = report(command, args, preset, base, [(px, deg) for _, px, deg in trials], cue_sets, results, diameter,
-                      skipped, failed, load_start, os.getloadavg(), time.perf_counter() - started)
-        figure = args.plot if args.plot is not None else (None if args.quick else str(RESULTS / "large_motion.png"))
+                      skipped, failed, clock.load_start, os.getloadavg(), clock.elapsed_s())
+        figure = output_path(args.plot, RESULTS / "large_motion.png", args.quick)
         if figure is not None and any(results.values()):
             picture(figure, trials[args.picture_trial][0], cue_sets, results, args.picture_trial)
     finally:
         if not args.seq_dir:
             shutil.rmtree(seq_dir, ignore_errors=True)
     print(text)
-    out = args.out if args.out is not None else (None if args.quick else str(RESULTS / "large_motion.md"))
-    if out is not None:
-        pathlib.Path(out).parent.mkdir(parents=True, exist_ok=True)
-        pathlib.Path(out).write_text(text)
+    save_text(output_path(args.out, RESULTS / "large_motion.md", args.quick), text)
     return results
 
 

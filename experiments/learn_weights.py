@@ -36,18 +36,16 @@ import dataclasses
 import json
 import os
 import pathlib
-import platform
 import shutil
 import sys
 import tempfile
 import time
 
 import numpy as np
-
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
-from bench_track import source_state  # one definition of the measured-commit line
 from track_presets import preset_config, write_preset
 from weight_sweep import Problem, with_factors
+
+from jaxtrack.bench import command_line, output_path, report_header, save_text, start_experiment
 
 RESULTS = pathlib.Path(__file__).resolve().parent / "results"
 START = (0.1, 1.0)  # the tracker's defaults: flow factor 0.1 (TRACKER_FLOW_FACTOR), SIFT factor 1
@@ -244,17 +242,10 @@ def _fmt(x, digits=3):
 
 
 def report(args, command, history, check, probe, evals, load_start, load_end, elapsed_s, step_s, notes) -> str:
-    import jax
-
     lines = [
         "# Learning the cue weights by gradient (experiment 8)",
         "",
-        f"Command: `{command}`  ",
-        (f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, {jax.devices()[0].platform}, "
-         f"JAX {jax.__version__}, float32; OpenCV single-threaded.  "),
-        f"Source: {source_state()}  ",
-        (f"Load average (1, 5, 15 min) at the start {tuple(round(x, 2) for x in load_start)}, at the end "
-         f"{tuple(round(x, 2) for x in load_end)}; run took {elapsed_s / 60:.1f} min."),
+        *report_header(command, load_start, load_end, elapsed_s),
         "",
         (f"Training: {args.preset} seeds {args.train_seeds} at {args.width}x{args.height}, cues {args.cues}; windows of "
          f"{args.window} frames starting at the true pose of frames {args.windows}; θ = (log flow, log SIFT factor) from "
@@ -373,18 +364,11 @@ def main(argv=None):
     train_seeds, eval_seeds, windows = _ints(args.train_seeds), _ints(args.eval_seeds), _ints(args.windows)
     fd_steps = [float(h) for h in args.fd_steps.split(",") if h.strip()]
     frames_needed = max(windows) + args.window + 1
-    command = " ".join(["python experiments/learn_weights.py", *(sys.argv[1:] if argv is None else argv)])
-
-    import cv2
-
-    cv2.setNumThreads(1)  # OpenCV's idle workers compete with XLA on a 2-core machine
-    started, load_start = time.perf_counter(), os.getloadavg()
+    command = command_line(__file__, argv)
+    clock = start_experiment(cache=False)
 
     def log(m):
-        print(f"[learn_weights] {m} ({(time.perf_counter() - started) / 60:.1f} min)", file=sys.stderr, flush=True)
-
-    def over_budget():
-        return args.budget_min is not None and time.perf_counter() - started > 60 * args.budget_min
+        print(f"[learn_weights] {m} ({clock.minutes():.1f} min)", file=sys.stderr, flush=True)
 
     seq_dir = pathlib.Path(args.seq_dir) if args.seq_dir else pathlib.Path(tempfile.mkdtemp(prefix="learn_weights_"))
     notes, step_s, history = [], [], []
@@ -417,7 +401,7 @@ def main(argv=None):
         theta, m, v = theta0.copy(), np.zeros(2), np.zeros(2)
         best = (np.inf, theta0.copy())
         for it in range(args.iterations + 1):
-            if over_budget():
+            if clock.over(args.budget_min):
                 notes.append(f"Training stopped after {it} evaluations: the time budget (--budget-min {args.budget_min:g}) "
                              "was spent; not run (time): the remaining iterations.")
                 break
@@ -441,7 +425,7 @@ def main(argv=None):
         settings = {"paper (1, 1)": (1.0, 1.0), "default (0.1, 1)": START, "learned": tuple(learned),
                     "learned flow, SIFT 1": (float(learned[0]), 1.0)}
         for s in eval_seeds:
-            if over_budget():
+            if clock.over(args.budget_min):
                 notes.append(f"Not run (time): evaluation on seed {s}.")
                 continue
             ev = load_problem(args.preset, args.scale, args.eval_frames, s, cues, seq_dir)
@@ -458,21 +442,16 @@ def main(argv=None):
         ("Finite differences cross the switches the derivative ignores (contour pixels, rounds, crops): where the "
          "loss is flat between switches and jumps at them, forward mode and FD can disagree; both are shown as measured."),
     ]
-    text = report(args, command, history, check, probe, evals, load_start, os.getloadavg(), time.perf_counter() - started,
+    text = report(args, command, history, check, probe, evals, clock.load_start, os.getloadavg(), clock.elapsed_s(),
                   step_s, notes)
     print(text)
-    out = args.out if args.out is not None else (None if args.quick else str(RESULTS / "learn_weights.md"))
-    if out is not None:
-        pathlib.Path(out).parent.mkdir(parents=True, exist_ok=True)
-        pathlib.Path(out).write_text(text)
-    figure = args.plot if args.plot is not None else (None if args.quick else str(RESULTS / "learn_weights.png"))
+    save_text(output_path(args.out, RESULTS / "learn_weights.md", args.quick), text)
+    figure = output_path(args.plot, RESULTS / "learn_weights.png", args.quick)
     if figure is not None and history:
         plot(figure, history, evals)
     data = {"command": command, "history": history, "check": check, "probe": probe, "learned": learned.tolist(),
             "evals": {k: {n: {"flow": f, "sift": s, **r} for n, (f, s, r) in v.items()} for k, v in evals.items()}}
-    js = args.json if args.json is not None else (None if args.quick else str(RESULTS / "learn_weights.json"))
-    if js is not None:
-        pathlib.Path(js).write_text(json.dumps(data, indent=1))
+    save_text(output_path(args.json, RESULTS / "learn_weights.json", args.quick), json.dumps(data, indent=1))
     return {"history": history, "check": check, "probe": probe, "learned": learned, "evals": evals, "text": text}
 
 

@@ -31,12 +31,11 @@ import pathlib
 import shutil
 import sys
 import tempfile
-import time
 
 import numpy as np
-
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 import track_presets as tp
+
+from jaxtrack.bench import command_line, start_experiment
 
 RESULTS = pathlib.Path(__file__).resolve().parent / "results"
 from jaxtrack.track._step import LOSS_EVIDENCE as FEATURES
@@ -256,13 +255,11 @@ def main(argv=None):
     args = ap.parse_args(argv)
     if args.quick:
         args.frames, args.calibration_frames = 8, 6
-    command = " ".join(["python experiments/loss_detection.py", *(sys.argv[1:] if argv is None else argv)])
-    import cv2
+    command = command_line(__file__, argv)
 
     from jaxtrack.io import read_sequence
 
-    cv2.setNumThreads(1)
-    started, load_start = time.perf_counter(), os.getloadavg()
+    clock = start_experiment(cache=False)
     seq_dir = pathlib.Path(args.seq_dir) if args.seq_dir else pathlib.Path(tempfile.mkdtemp(prefix="loss_"))
     try:
         calib = []
@@ -271,7 +268,7 @@ def main(argv=None):
             inject = (seq.num_frames // 2, 20.0 + 40.0 * ((i * 7) % 5) / 4) if i % 2 == 0 else (None, 0.0)
             calib.append((name, track(seq, inject[0], inject[1], seed=i)))
             print(f"[loss_detection] calibration {name}: {sum(r['failed'] for r in calib[-1][1])}/{len(calib[-1][1])} failed "
-                  f"({(time.perf_counter() - started) / 60:.1f} min)", file=sys.stderr, flush=True)
+                  f"({clock.minutes():.1f} min)", file=sys.stderr, flush=True)
         X = design([r for _, rs in calib for r in rs])
         y = np.array([r["failed"] for _, rs in calib for r in rs], float)
         w = fit_logistic(X, y)
@@ -280,11 +277,11 @@ def main(argv=None):
             seq = read_sequence(tp.write_preset(f"eval{i}", cfg, seq_dir))
             evals.append((name, track(seq)))
             print(f"[loss_detection] evaluation {name}: {sum(r['failed'] for r in evals[-1][1])}/{len(evals[-1][1])} failed "
-                  f"({(time.perf_counter() - started) / 60:.1f} min)", file=sys.stderr, flush=True)
+                  f"({clock.minutes():.1f} min)", file=sys.stderr, flush=True)
     finally:
         if not args.seq_dir:
             shutil.rmtree(seq_dir, ignore_errors=True)
-    text = report(command, time.perf_counter() - started, (load_start, os.getloadavg()), calib, evals, w)
+    text = report(command, clock.elapsed_s(), (clock.load_start, os.getloadavg()), calib, evals, w)
     print(text)
     out = pathlib.Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -22,9 +22,10 @@ import resource
 import subprocess
 import sys
 import tempfile
-import time
 
 import numpy as np
+
+from jaxtrack.bench import command_line, start_experiment
 
 RESULTS = pathlib.Path(__file__).resolve().parent / "results"
 
@@ -51,17 +52,13 @@ def main(argv=None):
     args = ap.parse_args(argv)
     if args.frames < 101 or args.clip < 3:
         raise SystemExit("memory_flat: --frames must be ≥ 101 and --clip ≥ 3")
-    import cv2
-
-    cv2.setNumThreads(1)
-    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
-    from bench_track import ALL_CUES, write_bench_sequence
+    from bench_track import ALL_CUES, write_bench_sequence  # experiments/ is on sys.path: this script's folder
 
     from jaxtrack.geometry import make_camera, rotation_error_deg, stack_cameras
     from jaxtrack.io import load_mesh, read_sequence
     from jaxtrack.track import Tracker, TrackerConfig
 
-    started, load_start = time.perf_counter(), os.getloadavg()
+    clock = start_experiment(cache=False)
     work = pathlib.Path(tempfile.mkdtemp(prefix="memory_flat_"))
     write_bench_sequence(work / "seq", 1, args.clip, 1.0)
     seq = read_sequence(work / "seq")
@@ -89,9 +86,9 @@ def main(argv=None):
     lines = [
         "# Memory over a long sequence",
         "",
-        f"Command: `python experiments/memory_flat.py {' '.join(sys.argv[1:] if argv is None else argv)}`  ",
+        f"Command: `{command_line(__file__, argv)}`  ",
         (f"Machine: {platform.machine()}, {os.cpu_count()} cores; source: {commit}; load average at the start "
-         f"{tuple(round(x, 2) for x in load_start)}; run took {(time.perf_counter() - started) / 60:.1f} min."),
+         f"{tuple(round(x, 2) for x in clock.load_start)}; run took {clock.minutes():.1f} min."),
         "",
         (f"Sequence: bench_track's textured box (640x480), {args.clip} rendered frames played back and forth for "
          f"{args.frames} tracked frames; all cues, one camera, the default configuration (96x128 working resolution)."),

@@ -30,11 +30,11 @@ import sys
 import tempfile
 import time
 
-import numpy as np
-
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 import noise_table as nt  # shared run / scoring helpers of the issue-12 experiments
+import numpy as np
 import track_presets as tp
+
+from jaxtrack.bench import command_line, output_path, save_text, start_experiment
 
 RESULTS = pathlib.Path(__file__).resolve().parent / "results"
 SUBSETS = ("region+flow+sift", "region", "region+flow", "region+sift")
@@ -209,16 +209,14 @@ def main(argv=None):
     if args.quick:
         args.cues, args.frames, args.scale = "region", 4, 0.15
     subsets = tp.parse_subsets(args.cues)
-    command = " ".join(["python experiments/moving_camera.py", *(sys.argv[1:] if argv is None else argv)])
+    command = command_line(__file__, argv)
 
-    import cv2
     import jax
 
     from jaxtrack.io import read_sequence
 
-    cv2.setNumThreads(1)  # OpenCV's idle workers compete with XLA on a 2-core machine
+    clock = start_experiment(cache=False)
     use_m3t = not args.no_m3t and tp.m3t_available()
-    started, load_start = time.perf_counter(), os.getloadavg()
     seq_dir = pathlib.Path(args.seq_dir) if args.seq_dir else pathlib.Path(tempfile.mkdtemp(prefix="moving_camera_"))
     work = pathlib.Path(tempfile.mkdtemp(prefix="moving_camera_out_"))
     rows, seqs, seq_info, failed = [], {}, {}, []
@@ -239,7 +237,7 @@ def main(argv=None):
                 rows.append({"method": "M3T", "cues": config, "skip": skip, **summarise(r, seqs[skip].num_frames)})
         for subset in subsets:
             for skip in (1, 2):
-                if args.budget_min is not None and time.perf_counter() - started > 60 * args.budget_min:
+                if clock.over(args.budget_min):
                     continue
                 t = time.perf_counter()
                 try:
@@ -253,21 +251,18 @@ def main(argv=None):
                 rows.append(row)
                 print(f"[moving_camera] skip {skip} {subset}: {tp._pct(row['success'])}, first failure {row['failure_5']}, "
                       f"lost {row['lost']} ({r['compiles']} compiles, {time.perf_counter() - t:.0f} s, "
-                      f"{(time.perf_counter() - started) / 60:.1f} min)", file=sys.stderr, flush=True)
+                      f"{clock.minutes():.1f} min)", file=sys.stderr, flush=True)
             if len(subsets) > 1:
                 jax.clear_caches()  # this subset's programs are not used again
-        text = report(args, command, seq_info, subsets, rows, diameter, load_start, os.getloadavg(),
-                      time.perf_counter() - started, failed)
+        text = report(args, command, seq_info, subsets, rows, diameter, clock.load_start, os.getloadavg(),
+                      clock.elapsed_s(), failed)
     finally:
         shutil.rmtree(work, ignore_errors=True)
         if not args.seq_dir:
             shutil.rmtree(seq_dir, ignore_errors=True)
     print(text)
-    out = args.out if args.out is not None else (None if args.quick else str(RESULTS / "moving_camera.md"))
-    if out is not None:
-        pathlib.Path(out).parent.mkdir(parents=True, exist_ok=True)
-        pathlib.Path(out).write_text(text)
-    figure = args.plot if args.plot is not None else (None if args.quick else str(RESULTS / "moving_camera.png"))
+    save_text(output_path(args.out, RESULTS / "moving_camera.md", args.quick), text)
+    figure = output_path(args.plot, RESULTS / "moving_camera.png", args.quick)
     if figure is not None and rows:
         plot(figure, rows, seq_info[1][0].frames)
     return rows

@@ -23,7 +23,6 @@ import argparse
 import dataclasses
 import os
 import pathlib
-import platform
 import shutil
 import subprocess
 import sys
@@ -31,9 +30,9 @@ import tempfile
 import time
 
 import numpy as np
-
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 import track_presets as tp  # the experiments folder is not a package
+
+from jaxtrack.bench import command_line, output_path, report_header, save_text, start_experiment
 
 RESULTS = pathlib.Path(__file__).resolve().parent / "results"
 SUBSETS = ("region+flow+sift", "region", "region+flow", "region+sift")  # run order: all cues first
@@ -137,19 +136,9 @@ def m3t_run(seq, config: str, out_dir: pathlib.Path, reset: bool = False) -> dic
 
 def header(title: str, command: str, load_start, load_end, elapsed_s: float) -> list[str]:
     """Title, command, machine, commit and load lines shared by the issue-12 reports."""
-    import jax
-
-    return [
-        f"# {title}",
-        "",
-        f"Command: `{command}`  ",
-        (f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, {jax.devices()[0].platform}, "
-         f"JAX {jax.__version__}, float32; OpenCV single-threaded; M3T one thread.  "),
-        f"Source: {tp.source_state()}  ",
-        (f"Load average (1, 5, 15 min) at the start {tuple(round(x, 2) for x in load_start)}, at the end "
-         f"{tuple(round(x, 2) for x in load_end)}; run took {elapsed_s / 60:.1f} min (ms / frame are host times on a "
-         "shared 2-core machine, frames that compiled the step left out)."),
-    ]
+    return [f"# {title}", "", *report_header(
+        command, load_start, load_end, elapsed_s, setup="float32; OpenCV single-threaded; M3T one thread",
+        note="ms / frame are host times on a shared 2-core machine, frames that compiled the step left out")]
 
 
 def scene_config(args, sigma: float):
@@ -284,16 +273,14 @@ def main(argv=None):
         raise SystemExit("noise_table: --frames must be ≥ 2")
     sigmas = tuple(float(s) for s in args.sigmas.split(","))
     subsets = tp.parse_subsets(args.cues)
-    command = " ".join(["python experiments/noise_table.py", *(sys.argv[1:] if argv is None else argv)])
+    command = command_line(__file__, argv)
 
-    import cv2
     import jax
 
     from jaxtrack.io import read_sequence
 
-    cv2.setNumThreads(1)  # OpenCV's idle workers compete with XLA on a 2-core machine
+    clock = start_experiment(cache=False)
     use_m3t = not args.no_m3t and tp.m3t_available()
-    started, load_start = time.perf_counter(), os.getloadavg()
     seq_dir = pathlib.Path(args.seq_dir) if args.seq_dir else pathlib.Path(tempfile.mkdtemp(prefix="noise_table_"))
     work = pathlib.Path(tempfile.mkdtemp(prefix="noise_table_out_"))
     rows, m3t, seqs, failed = [], {}, {}, []
@@ -318,7 +305,7 @@ def main(argv=None):
                 m3t[(config, s)] = r
         for subset in subsets:
             for s in sigmas:
-                if args.budget_min is not None and time.perf_counter() - started > 60 * args.budget_min:
+                if clock.over(args.budget_min):
                     continue
                 t = time.perf_counter()
                 try:
@@ -329,22 +316,19 @@ def main(argv=None):
                     continue
                 rows.append({"cues": subset, "sigma": s, **r})
                 print(f"[noise_table] σ={s:g} {subset}: failure at {r['first_failure']} ({r['tracked']} tracked, "
-                      f"{r['compiles']} compiles, {time.perf_counter() - t:.0f} s, {(time.perf_counter() - started) / 60:.1f} min)",
+                      f"{r['compiles']} compiles, {time.perf_counter() - t:.0f} s, {clock.minutes():.1f} min)",
                       file=sys.stderr, flush=True)
             if len(subsets) > 1:
                 jax.clear_caches()  # this subset's programs are not used again
-        text = report(args, command, sigmas, subsets, rows, m3t, cfg0, diameter, load_start, os.getloadavg(),
-                      time.perf_counter() - started, failed)
+        text = report(args, command, sigmas, subsets, rows, m3t, cfg0, diameter, clock.load_start, os.getloadavg(),
+                      clock.elapsed_s(), failed)
     finally:
         shutil.rmtree(work, ignore_errors=True)
         if not args.seq_dir:
             shutil.rmtree(seq_dir, ignore_errors=True)
     print(text)
-    out = args.out if args.out is not None else (None if args.quick else str(RESULTS / "noise_table.md"))
-    if out is not None:
-        pathlib.Path(out).parent.mkdir(parents=True, exist_ok=True)
-        pathlib.Path(out).write_text(text)
-    figure = args.plot if args.plot is not None else (None if args.quick else str(RESULTS / "noise_table.png"))
+    save_text(output_path(args.out, RESULTS / "noise_table.md", args.quick), text)
+    figure = output_path(args.plot, RESULTS / "noise_table.png", args.quick)
     if figure is not None:
         plot(figure, sigmas, subsets, rows, m3t, cfg0.frames)
     return rows, m3t

@@ -28,17 +28,15 @@ from __future__ import annotations
 import argparse
 import os
 import pathlib
-import platform
 import shutil
 import sys
 import tempfile
 import time
 
 import numpy as np
-
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 import track_presets as tp  # the presets' sequence writing, one definition
-from bench_track import source_state
+
+from jaxtrack.bench import command_line, output_path, report_header, save_text, start_experiment
 
 RESULTS = pathlib.Path(__file__).resolve().parent / "results"
 
@@ -104,18 +102,11 @@ def _num(x, digits=2) -> str:
 
 
 def report(command, args, size, diameter, runs, skipped, failed, load_start, load_end, elapsed_s, truth_px) -> str:
-    import jax
-
     w, h, n = size
     lines = [
         "# Occlusion: tracking with and without the occlusion detection (paper Fig. 12, 13)",
         "",
-        f"Command: `{command}`  ",
-        (f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, {jax.devices()[0].platform}, "
-         f"JAX {jax.__version__}, float32; OpenCV single-threaded.  "),
-        f"Source: {source_state()}  ",
-        (f"Load average (1, 5, 15 min) at the start {tuple(round(x, 2) for x in load_start)}, at the end "
-         f"{tuple(round(x, 2) for x in load_end)}; run took {elapsed_s / 60:.1f} min."),
+        *report_header(command, load_start, load_end, elapsed_s),
         "",
         (f"Sequence: occluded-box {w}x{h}, {n} frames ({n - 1} tracked, no resets), two moving occluders; box diameter "
          f"{diameter:.0f} mm; {sum(p > 0 for p in truth_px[1:])} of the tracked frames have occluded object pixels "
@@ -255,20 +246,14 @@ def main(argv=None):
         raise SystemExit("occlusion: --frames must be ≥ 2")
     cue_sets = tp.parse_subsets(args.cues)
     switches = (True,) if args.quick else (True, False)
-    command = " ".join(["python experiments/occlusion.py", *(sys.argv[1:] if argv is None else argv)])
+    command = command_line(__file__, argv)
 
-    import cv2
     import jax
 
     from jaxtrack.io import load_trimesh, read_sequence
     from jaxtrack.track import model_diameter
 
-    cv2.setNumThreads(1)  # OpenCV's idle workers compete with XLA on a 2-core machine
-    if not args.quick:  # a rerun (or the next script) loads compiled steps instead of compiling them again
-        from jaxtrack import enable_compilation_cache
-
-        enable_compilation_cache()
-    started, load_start = time.perf_counter(), os.getloadavg()
+    clock = start_experiment(cache=not args.quick)
     seq_dir = pathlib.Path(args.seq_dir) if args.seq_dir else pathlib.Path(tempfile.mkdtemp(prefix="occlusion_"))
     runs, skipped, failed = {}, [], []
     try:
@@ -279,7 +264,7 @@ def main(argv=None):
         diameter = float(model_diameter(np.asarray(load_trimesh(seq.model_paths[1]).convex_hull.vertices)))
         for cues in cue_sets:
             for occ in switches:
-                if args.budget_min is not None and time.perf_counter() - started > 60 * args.budget_min:
+                if clock.over(args.budget_min):
                     skipped.append((cues, occ))
                     continue
                 t = time.perf_counter()
@@ -291,23 +276,20 @@ def main(argv=None):
                     continue
                 runs[(cues, occ)] = r
                 print(f"[occlusion] {cues} detection {'on' if occ else 'off'}: mean rot {r['rot'][1:].mean():.2f}°, "
-                      f"{sum(r['compiled'])} compiles ({time.perf_counter() - t:.0f} s, {(time.perf_counter() - started) / 60:.1f} min)",
+                      f"{sum(r['compiled'])} compiles ({time.perf_counter() - t:.0f} s, {clock.minutes():.1f} min)",
                       file=sys.stderr, flush=True)
                 if not args.quick:
                     jax.clear_caches()  # the other switch is another program
-        text = report(command, args, (cfg.width, cfg.height, cfg.frames), diameter, runs, skipped, failed, load_start,
-                      os.getloadavg(), time.perf_counter() - started, truth_px)
-        figure = args.plot if args.plot is not None else (None if args.quick else str(RESULTS / "occlusion.png"))
+        text = report(command, args, (cfg.width, cfg.height, cfg.frames), diameter, runs, skipped, failed,
+                      clock.load_start, os.getloadavg(), clock.elapsed_s(), truth_px)
+        figure = output_path(args.plot, RESULTS / "occlusion.png", args.quick)
         if figure is not None and runs:
             plot(figure, seq, runs, truth_px)
     finally:
         if not args.seq_dir:
             shutil.rmtree(seq_dir, ignore_errors=True)
     print(text)
-    out = args.out if args.out is not None else (None if args.quick else str(RESULTS / "occlusion.md"))
-    if out is not None:
-        pathlib.Path(out).parent.mkdir(parents=True, exist_ok=True)
-        pathlib.Path(out).write_text(text)
+    save_text(output_path(args.out, RESULTS / "occlusion.md", args.quick), text)
     return runs
 
 

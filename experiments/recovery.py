@@ -27,13 +27,12 @@ import pathlib
 import shutil
 import sys
 import tempfile
-import time
 
-import numpy as np
-
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 import loss_detection as ld
+import numpy as np
 import track_presets as tp
+
+from jaxtrack.bench import command_line, start_experiment
 
 RESULTS = pathlib.Path(__file__).resolve().parent / "results"
 MODES = ("no recovery", "recovery", "RBOT resets")
@@ -142,13 +141,11 @@ def main(argv=None):
     args = ap.parse_args(argv)
     if args.quick:
         args.frames = 8
-    command = " ".join(["python experiments/recovery.py", *(sys.argv[1:] if argv is None else argv)])
-    import cv2
+    command = command_line(__file__, argv)
 
     from jaxtrack.io import read_sequence
 
-    cv2.setNumThreads(1)
-    started, load_start = time.perf_counter(), os.getloadavg()
+    clock = start_experiment(cache=False)
     seq_dir = pathlib.Path(args.seq_dir) if args.seq_dir else pathlib.Path(tempfile.mkdtemp(prefix="recovery_"))
     runs: dict = {}
     try:
@@ -158,11 +155,11 @@ def main(argv=None):
             seq = read_sequence(tp.write_preset(f"eval{i}", cfg, seq_dir))
             runs[name] = {m: track(seq, m, args.hypotheses) for m in MODES}
             print(f"[recovery] {name}: " + ", ".join(f"{m} {_rate(runs[name][m]):.0f} %" for m in MODES)
-                  + f" ({(time.perf_counter() - started) / 60:.1f} min)", file=sys.stderr, flush=True)
+                  + f" ({clock.minutes():.1f} min)", file=sys.stderr, flush=True)
     finally:
         if not args.seq_dir:
             shutil.rmtree(seq_dir, ignore_errors=True)
-    text = report(command, time.perf_counter() - started, (load_start, os.getloadavg()), runs)
+    text = report(command, clock.elapsed_s(), (clock.load_start, os.getloadavg()), runs)
     print(text)
     out = pathlib.Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

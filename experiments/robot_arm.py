@@ -18,14 +18,12 @@ import argparse
 import os
 import pathlib
 import platform
-import sys
 import tempfile
 import time
 
 import numpy as np
 
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
-from bench_track import source_state
+from jaxtrack.bench import command_line, save_text, source_state, start_experiment
 
 RESULTS = pathlib.Path(__file__).resolve().parent / "results"
 SHARED = pathlib.Path(os.environ.get("JAXTRACK_SHARED", pathlib.Path(__file__).resolve().parents[2] / "shared"))
@@ -146,9 +144,6 @@ def plot(path, rows) -> None:
 
 
 def main(argv=None):
-    import cv2
-
-    cv2.setNumThreads(1)
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cues", default="region,region+flow,region+flow+sift", help="comma-separated cue subsets")
     ap.add_argument("--cameras", default="1,2", help="comma-separated camera counts")
@@ -166,9 +161,10 @@ def main(argv=None):
     subsets = [c.strip() for c in args.cues.split(",") if c.strip()]
     cams = [int(c) for c in args.cameras.split(",")]
     limits = [v.strip() == "on" for v in args.limits.split(",")]
-    command = "python experiments/robot_arm.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    command = command_line(__file__, argv)
+    clock = start_experiment(cache=False)
     folder = pathlib.Path(args.seq_dir) if args.seq_dir else pathlib.Path(tempfile.mkdtemp(prefix="robot_arm_"))
-    load0, start, rows = os.getloadavg()[0], time.perf_counter(), {}
+    rows = {}
     for c in cams:
         seq = write_arm_sequence(folder, c, args.frames, args.scale, args.step_deg, args.seed)
         for cues in subsets:
@@ -176,18 +172,17 @@ def main(argv=None):
                 if lim and cues != subsets[-1]:
                     continue
                 key = (cues, c, lim)
-                if (time.perf_counter() - start) / 60 > args.budget_min:
+                if clock.over(args.budget_min):
                     rows[key] = None
                     continue
                 rows[key] = r = run_one(seq, cues, lim)
                 print(f"{cues:17s} {c} cam limits {'on ' if lim else 'off'}: joints {r['joint_mean']:.2f} / "
                       f"{r['joint_max']:.2f}°, root {r['rot']:.2f}° {r['trans']:.2f} mm, {r['s_per_frame']:.2f} s/frame",
                       flush=True)
-    text = report(args, command, rows, time.perf_counter() - start, (load0, os.getloadavg()[0]))
+    text = report(args, command, rows, clock.elapsed_s(), (clock.load_start[0], os.getloadavg()[0]))
     print(text)
     if args.out:
-        pathlib.Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        pathlib.Path(args.out).write_text(text)
+        save_text(args.out, text)
     if args.plot:
         plot(pathlib.Path(args.plot), rows)
     return rows

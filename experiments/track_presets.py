@@ -29,7 +29,6 @@ import dataclasses
 import json
 import os
 import pathlib
-import platform
 import shutil
 import subprocess
 import sys
@@ -38,8 +37,7 @@ import time
 
 import numpy as np
 
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
-from bench_track import source_state  # one definition for both reports
+from jaxtrack.bench import command_line, output_path, report_header, save_text, start_experiment
 
 RESULTS = pathlib.Path(__file__).resolve().parent / "results"
 SHARED = pathlib.Path(os.environ.get("JAXTRACK_SHARED", pathlib.Path(__file__).resolve().parents[2] / "shared"))
@@ -177,20 +175,13 @@ def _num(x, digits=2) -> str:
 
 
 def report(args, command, presets, subsets, rows, sizes, load_start, load_end, elapsed_s, m3t_note, skipped, failed) -> str:
-    import jax
-
     methods = [("jaxtrack", s) for s in subsets] + [("M3T", c) for c in M3T_CONFIGS if any(r[0] == "M3T" and r[1] == c for r in rows)]
     lines = [
         "# Tracking success on the synthetic presets",
         "",
-        f"Command: `{command}`  ",
-        (f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, {jax.devices()[0].platform}, "
-         f"JAX {jax.__version__}, float32; OpenCV single-threaded; M3T one thread.  "),
-        f"Source: {source_state()}  ",
-        (f"Load average (1, 5, 15 min) at the start {tuple(round(x, 2) for x in load_start)}, at the end "
-         f"{tuple(round(x, 2) for x in load_end)}; run took {elapsed_s / 60:.1f} min (ms / frame are host times on a "
-         "shared machine when the load is above the core count; they include nothing of compilation only when the "
-         "median frame did not compile)."),
+        *report_header(command, load_start, load_end, elapsed_s, setup="float32; OpenCV single-threaded; M3T one thread",
+                       note=("ms / frame are host times on a shared machine when the load is above the core count; they "
+                             "include nothing of compilation only when the median frame did not compile")),
         "",
         "Sequences: " + "; ".join(f"{p} {w}x{h}, {n} frames, {c} camera(s)" for p, (w, h, n, c) in sizes.items()) + ".",
         "",
@@ -301,18 +292,16 @@ def main(argv=None):
         raise SystemExit("track_presets: --frames must be ≥ 2")
     presets = tuple(p.strip() for p in args.presets.split(",") if p.strip())
     subsets = parse_subsets(args.cues)
-    command = " ".join(["python experiments/track_presets.py", *(sys.argv[1:] if argv is None else argv)])
+    command = command_line(__file__, argv)
 
-    import cv2
     import jax
 
     from jaxtrack.io import read_sequence
 
-    cv2.setNumThreads(1)  # OpenCV's idle workers compete with XLA on a 2-core machine
+    clock = start_experiment(cache=False)
     use_m3t = not args.no_m3t and m3t_available()
     m3t_note = "" if use_m3t else (
         "- M3T skipped: " + ("--no-m3t." if args.no_m3t else f"the baseline is not built on this machine ({M3T_BIN} missing)."))
-    started, load_start = time.perf_counter(), os.getloadavg()
     seq_dir = pathlib.Path(args.seq_dir) if args.seq_dir else pathlib.Path(tempfile.mkdtemp(prefix="track_presets_"))
     work = pathlib.Path(tempfile.mkdtemp(prefix="track_presets_out_"))
     rows, sizes, seqs, skipped, failed = [], {}, {}, [], []
@@ -331,7 +320,7 @@ def main(argv=None):
         # Subset by subset, so that a spent time budget drops whole subsets rather than presets.
         for subset in subsets:
             for p in presets:
-                if args.budget_min is not None and time.perf_counter() - started > 60 * args.budget_min:
+                if clock.over(args.budget_min):
                     skipped.append((subset, p))
                     continue
                 for reset in resets:
@@ -344,22 +333,19 @@ def main(argv=None):
                         continue
                     rows.append(("jaxtrack", subset, p, r))
                     print(f"[track_presets] {p} {subset} reset={reset}: {_pct(r['success'])}, first failure {r['first_failure']}, "
-                          f"{r['compiles']} compiles ({time.perf_counter() - t:.0f} s, {(time.perf_counter() - started) / 60:.1f} min)",
+                          f"{r['compiles']} compiles ({time.perf_counter() - t:.0f} s, {clock.minutes():.1f} min)",
                           file=sys.stderr, flush=True)
                 if len(presets) > 1:
                     jax.clear_caches()  # programs of this preset and subset (mesh, raster plan, crops) are not used again
-        text = report(args, command, presets, subsets, rows, sizes, load_start, os.getloadavg(), time.perf_counter() - started,
+        text = report(args, command, presets, subsets, rows, sizes, clock.load_start, os.getloadavg(), clock.elapsed_s(),
                       m3t_note, skipped, failed)
     finally:
         shutil.rmtree(work, ignore_errors=True)
         if not args.seq_dir:
             shutil.rmtree(seq_dir, ignore_errors=True)
     print(text)
-    out = args.out if args.out is not None else (None if args.quick else str(RESULTS / "track_presets.md"))
-    if out is not None:
-        pathlib.Path(out).parent.mkdir(parents=True, exist_ok=True)
-        pathlib.Path(out).write_text(text)
-    figure = args.plot if args.plot is not None else (None if args.quick else str(RESULTS / "track_presets.png"))
+    save_text(output_path(args.out, RESULTS / "track_presets.md", args.quick), text)
+    figure = output_path(args.plot, RESULTS / "track_presets.png", args.quick)
     if figure is not None and rows:
         plot(figure, presets, rows)
     return rows

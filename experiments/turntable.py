@@ -24,17 +24,15 @@ import argparse
 import dataclasses
 import os
 import pathlib
-import platform
 import shutil
 import sys
 import tempfile
 import time
 
 import numpy as np
-
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 import track_presets as tp  # the presets' sequence writing and scoring, one definition
-from bench_track import source_state
+
+from jaxtrack.bench import command_line, output_path, report_header, save_text, start_experiment
 
 RESULTS = pathlib.Path(__file__).resolve().parent / "results"
 # (label, preset, fraction of pixels replaced by uniform noise); the paper's three runs.
@@ -100,17 +98,10 @@ def track_turntable(seq, cues: tuple[str, ...], out_dir: pathlib.Path, tag: str)
 
 
 def report(command, runs, cue_sets, rows, sizes, skipped, failed, load_start, load_end, elapsed_s, args) -> str:
-    import jax
-
     lines = [
         "# Turntable: rotation angle about the turntable axis (paper Fig. 10, 11)",
         "",
-        f"Command: `{command}`  ",
-        (f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, {jax.devices()[0].platform}, "
-         f"JAX {jax.__version__}, float32; OpenCV single-threaded.  "),
-        f"Source: {source_state()}  ",
-        (f"Load average (1, 5, 15 min) at the start {tuple(round(x, 2) for x in load_start)}, at the end "
-         f"{tuple(round(x, 2) for x in load_end)}; run took {elapsed_s / 60:.1f} min."),
+        *report_header(command, load_start, load_end, elapsed_s),
         "",
         "Sequences: " + "; ".join(f"{label}: {p} {w}x{h}, {n} frames ({n - 1} tracked), {s:g} of the pixels uniform noise"
                                   for label, (p, w, h, n, s) in sizes.items()) + ".",
@@ -217,7 +208,7 @@ def main(argv=None):
         raise SystemExit("turntable: --noise-fraction must lie in [0, 1]")
     if args.frames is not None and args.frames < 2:
         raise SystemExit("turntable: --frames must be ≥ 2")
-    command = " ".join(["python experiments/turntable.py", *(sys.argv[1:] if argv is None else argv)])
+    command = command_line(__file__, argv)
     if args.quick:
         # track_presets --quick's object, frames and configuration (its compiled step is reused), turning on the
         # turntable instead of moving at random: the first frame and pose are the same, so is the program.
@@ -227,17 +218,11 @@ def main(argv=None):
         runs = tuple((label, p, args.noise_fraction if s > 0 else 0.0) for label, p, s in RUNS)
     cue_sets = tp.parse_subsets(args.cues)
 
-    import cv2
     import jax
 
     from jaxtrack.io import read_sequence
 
-    cv2.setNumThreads(1)  # OpenCV's idle workers compete with XLA on a 2-core machine
-    if not args.quick:  # a rerun (or the next script) loads compiled steps instead of compiling them again
-        from jaxtrack import enable_compilation_cache
-
-        enable_compilation_cache()
-    started, load_start = time.perf_counter(), os.getloadavg()
+    clock = start_experiment(cache=not args.quick)
     seq_dir = pathlib.Path(args.seq_dir) if args.seq_dir else pathlib.Path(tempfile.mkdtemp(prefix="turntable_"))
     work = pathlib.Path(tempfile.mkdtemp(prefix="turntable_out_"))
     rows, sizes, seqs, skipped, failed = [], {}, {}, [], []
@@ -250,7 +235,7 @@ def main(argv=None):
             sizes[label] = (preset, cfg.width, cfg.height, cfg.frames, salt)
         for cues in cue_sets:
             for label, _, _ in runs:
-                if args.budget_min is not None and time.perf_counter() - started > 60 * args.budget_min:
+                if clock.over(args.budget_min):
                     skipped.append((cues, label))
                     continue
                 t = time.perf_counter()
@@ -263,21 +248,18 @@ def main(argv=None):
                 rows.append((cues, label, r))
                 print(f"[turntable] {label} {cues}: angle error {r['angle_err_mean']:.2f}° (max {r['angle_err_max']:.2f}), "
                       f"rot {r['rot_deg']:.2f}°, {r['compiles']} compiles ({time.perf_counter() - t:.0f} s, "
-                      f"{(time.perf_counter() - started) / 60:.1f} min)", file=sys.stderr, flush=True)
+                      f"{clock.minutes():.1f} min)", file=sys.stderr, flush=True)
             if not args.quick:
                 jax.clear_caches()  # this cue set's programs are not used again
-        text = report(command, runs, cue_sets, rows, sizes, skipped, failed, load_start, os.getloadavg(),
-                      time.perf_counter() - started, args)
+        text = report(command, runs, cue_sets, rows, sizes, skipped, failed, clock.load_start, os.getloadavg(),
+                      clock.elapsed_s(), args)
     finally:
         shutil.rmtree(work, ignore_errors=True)
         if not args.seq_dir:
             shutil.rmtree(seq_dir, ignore_errors=True)
     print(text)
-    out = args.out if args.out is not None else (None if args.quick else str(RESULTS / "turntable.md"))
-    if out is not None:
-        pathlib.Path(out).parent.mkdir(parents=True, exist_ok=True)
-        pathlib.Path(out).write_text(text)
-    figure = args.plot if args.plot is not None else (None if args.quick else str(RESULTS / "turntable.png"))
+    save_text(output_path(args.out, RESULTS / "turntable.md", args.quick), text)
+    figure = output_path(args.plot, RESULTS / "turntable.png", args.quick)
     if figure is not None and rows:
         plot(figure, runs, rows)
     return rows

@@ -24,17 +24,15 @@ import argparse
 import json
 import os
 import pathlib
-import platform
 import shutil
 import sys
 import tempfile
 import time
 
 import numpy as np
-
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
-from bench_track import source_state  # one definition of the measured-commit line
 from track_presets import preset_config, write_preset
+
+from jaxtrack.bench import command_line, output_path, report_header, save_text, start_experiment
 
 RESULTS = pathlib.Path(__file__).resolve().parent / "results"
 DEFAULT_FLOW = (0.01, 0.03, 0.1, 0.3, 1.0)
@@ -238,19 +236,12 @@ def _fmt(x, digits=2):
 
 
 def report(args, command, cfg, flows, sifts, scores, run, load_start, load_end, elapsed_s, best) -> str:
-    import jax
-
     B = len(flows) * len(sifts)
     compiled = [s for s, t in zip(run["step_s"], run["traced"], strict=True) if not t]
     lines = [
         "# Cue-weight sweep with vmap (experiment 7)",
         "",
-        f"Command: `{command}`  ",
-        (f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, {jax.devices()[0].platform}, "
-         f"JAX {jax.__version__}, float32; OpenCV single-threaded.  "),
-        f"Source: {source_state()}  ",
-        (f"Load average (1, 5, 15 min) at the start {tuple(round(x, 2) for x in load_start)}, at the end "
-         f"{tuple(round(x, 2) for x in load_end)}; run took {elapsed_s / 60:.1f} min."),
+        *report_header(command, load_start, load_end, elapsed_s),
         "",
         (f"Sequence: {args.preset} at {cfg.width}x{cfg.height}, {cfg.frames} frames ({cfg.frames - 1} tracked), "
          f"{cfg.cameras} camera(s); cues {args.cues}; {B} settings ({len(flows)} flow x {len(sifts)} SIFT factors) "
@@ -371,15 +362,12 @@ def main(argv=None):
         args.preset, args.cues, args.frames, args.scale, args.flow, args.sift = "occluded-box", "region", 4, 0.15, "0.1,1", "1,10"
     flows, sifts = _floats(args.flow), _floats(args.sift)
     cues = tuple(c for c in args.cues.split("+") if c)
-    command = " ".join(["python experiments/weight_sweep.py", *(sys.argv[1:] if argv is None else argv)])
-
-    import cv2
+    command = command_line(__file__, argv)
 
     from jaxtrack.io import read_sequence
     from jaxtrack.synth import PRESETS
 
-    cv2.setNumThreads(1)  # OpenCV's idle workers compete with XLA on a 2-core machine
-    started, load_start = time.perf_counter(), os.getloadavg()
+    clock = start_experiment(cache=False)
     cfg = preset_config(args.preset, args.scale, args.frames)
     args.preset_frames = PRESETS[args.preset].frames
     args.skipped = ""
@@ -390,8 +378,7 @@ def main(argv=None):
         grid_f = np.array([f for _ in sifts for f in flows])
         grid_s = np.array([s for s in sifts for _ in flows])
         run = track_batch(problem, grid_f, grid_s, reset=not args.no_reset,
-                          log=lambda m: print(f"[weight_sweep] {m} ({(time.perf_counter() - started) / 60:.1f} min)",
-                                              file=sys.stderr, flush=True))
+                          log=lambda m: print(f"[weight_sweep] {m} ({clock.minutes():.1f} min)", file=sys.stderr, flush=True))
     finally:
         if not args.seq_dir:
             shutil.rmtree(seq_dir, ignore_errors=True)
@@ -399,21 +386,16 @@ def main(argv=None):
     scores = [[flat[i * len(flows) + j] for j in range(len(flows))] for i in range(len(sifts))]
     best = min(((i, j) for i in range(len(sifts)) for j in range(len(flows))),
                key=lambda ij: (scores[ij[0]][ij[1]]["rot_deg"], -scores[ij[0]][ij[1]]["success"]))
-    text = report(args, command, cfg, flows, sifts, scores, run, load_start, os.getloadavg(), time.perf_counter() - started, best)
+    text = report(args, command, cfg, flows, sifts, scores, run, clock.load_start, os.getloadavg(), clock.elapsed_s(), best)
     print(text)
-    out = args.out if args.out is not None else (None if args.quick else str(RESULTS / "weight_sweep.md"))
-    if out is not None:
-        pathlib.Path(out).parent.mkdir(parents=True, exist_ok=True)
-        pathlib.Path(out).write_text(text)
-    figure = args.plot if args.plot is not None else (None if args.quick else str(RESULTS / "weight_sweep.png"))
+    save_text(output_path(args.out, RESULTS / "weight_sweep.md", args.quick), text)
+    figure = output_path(args.plot, RESULTS / "weight_sweep.png", args.quick)
     if figure is not None:
         plot(figure, flows, sifts, scores, best)
     data = {"preset": args.preset, "width": cfg.width, "height": cfg.height, "frames": cfg.frames, "cues": args.cues,
             "flow": list(flows), "sift": list(sifts), "scores": scores, "best": {"flow": flows[best[1]], "sift": sifts[best[0]]},
             "rot_deg": run["rot_deg"].tolist(), "success": run["success"].tolist(), "command": command}
-    js = args.json if args.json is not None else (None if args.quick else str(RESULTS / "weight_sweep.json"))
-    if js is not None:
-        pathlib.Path(js).write_text(json.dumps(data, indent=1))
+    save_text(output_path(args.json, RESULTS / "weight_sweep.json", args.quick), json.dumps(data, indent=1))
     return {"flows": flows, "sifts": sifts, "scores": scores, "run": run, "best": best, "text": text}
 
 

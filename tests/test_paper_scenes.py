@@ -8,6 +8,7 @@ no new tracker program.
 
 import importlib.util
 import pathlib
+import sys
 
 import equinox as eqx
 import numpy as np
@@ -17,6 +18,10 @@ EXPERIMENTS = pathlib.Path(__file__).resolve().parents[1] / "experiments"
 
 
 def _load(name):
+    """experiments/NAME.py as a module; its folder goes first on sys.path (once), as when it runs as a script, so its
+    `import track_presets` finds the sibling."""
+    if str(EXPERIMENTS) not in sys.path:
+        sys.path.insert(0, str(EXPERIMENTS))
     spec = importlib.util.spec_from_file_location(name, EXPERIMENTS / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)

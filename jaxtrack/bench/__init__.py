@@ -21,6 +21,13 @@ from ._datasets import LAYOUTS as LAYOUTS
 from ._datasets import BenchItem as BenchItem
 from ._datasets import detect_layout as detect_layout
 from ._datasets import find_items as find_items
+from ._harness import ExperimentClock as ExperimentClock
+from ._harness import command_line as command_line
+from ._harness import output_path as output_path
+from ._harness import report_header as report_header
+from ._harness import save_text as save_text
+from ._harness import source_state as source_state
+from ._harness import start_experiment as start_experiment
 from ._jobs import PROTOCOLS as PROTOCOLS
 from ._jobs import BenchJob as BenchJob
 from ._jobs import BenchSettings as BenchSettings
@@ -70,7 +77,7 @@ def _check_request(out: pathlib.Path, request: dict) -> None:
 def run_bench(dataset: str | os.PathLike, out: str | os.PathLike, settings: BenchSettings | None = None, *,
               layout: str = "auto", objects: list[str] | None = None, variants: list[str] | None = None,
               workers: int | None = None, address: str | None = None, use_cache: bool = True,
-              single_thread: bool = True, progress: bool = True) -> BenchReport:
+              single_thread: bool = True, timeout_s: float | None = None, progress: bool = True) -> BenchReport:
     """Track and evaluate every sequence of `dataset` under `settings`; write OUT's results and tables.
 
     Args:
@@ -85,6 +92,8 @@ def run_bench(dataset: str | os.PathLike, out: str | os.PathLike, settings: Benc
         single_thread: each Ray worker uses one XLA thread (the processes share the cores). At XLA's default
             optimisation level its poses are bit-identical to a multi-threaded run's; at level 0 (the test suite's)
             they differ in the last bits, so False keeps this process's threading for an exact comparison there.
+        timeout_s: on Ray, runs not finished after this many seconds are reported as failed and the workers stopped
+            (a resumed bench runs them again).
         progress: a progress bar over the sequences with the ETA.
 
     Raises:
@@ -139,7 +148,8 @@ def run_bench(dataset: str | os.PathLike, out: str | os.PathLike, settings: Benc
             executor = "sequential (this process)"
         else:
             info = run_on_ray(todo, settings, out, on_result, workers=workers, address=address, use_cache=use_cache,
-                              single_thread=single_thread, tick=None if bar is None else bar.refresh)
+                              single_thread=single_thread, timeout_s=timeout_s,
+                              tick=None if bar is None else bar.refresh)
             executor = f"ray ({info['nodes']} node(s), {info['cpus']} CPUs, {info['workers']} worker(s))"
     finally:
         if bar is not None:
