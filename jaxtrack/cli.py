@@ -82,6 +82,10 @@ def _cmd_synth(args) -> int:
         return 0
     if args.out is None:
         raise ValueError("an output folder is required (or --list)")
+    if args.rbot is not None and (args.urdf or args.mocap):
+        raise ValueError("--rbot writes rigid objects in RBOT's layout; --urdf / --mocap write an articulated sequence")
+    if args.variants is not None and args.rbot is None:
+        raise ValueError("--variants chooses the RBOT variants of --rbot")
     if args.urdf or args.mocap:
         return _synth_articulated(args)
     if args.rbot is not None:
@@ -113,7 +117,8 @@ def _synth_rbot(args) -> int:
                                         ("--motion", args.motion), ("--pose-file", args.pose_file),
                                         ("--salt-fraction", args.salt_fraction), ("--occluders", args.occluders),
                                         ("--cameras", args.cameras), ("--subsample", args.subsample),
-                                        ("--object", args.object)) if value is not None]
+                                        ("--object", args.object), ("--step-deg", args.step_deg),
+                                        ("--fps", args.fps)) if value is not None]
     if ignored:
         raise ValueError(f"--rbot writes RBOT's layout (its objects are --rbot OBJECTS); {', '.join(ignored)} apply to one "
                          "BOP sequence")
@@ -1160,8 +1165,8 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--objects", type=_name_list, help="only these objects, comma-separated")
     bench.add_argument("--variants", type=_name_list, help="only these variants (RBOT: a_regular, b_dynamiclight, "
                        "c_noisy, d_occlusion; BCOT: scenes; BOP: sequence folders)")
-    bench.add_argument("--workers", type=_number(int, 0), help="Ray worker processes on this machine (default: one per "
-                       "CPU); 0: one after another in this process, without Ray")
+    bench.add_argument("--workers", type=_number(int, 0), help="Ray worker processes (default: one per CPU of this "
+                       "machine, or of the cluster with --address); 0: one after another in this process, without Ray")
     bench.add_argument("--address", help="join a running Ray cluster (host:port of `ray start --head`, or auto); every "
                        "node must see DATASET and -o at the same paths")
     bench.add_argument("--timeout-min", dest="timeout_min", type=_number(float, 0, low_open=True), metavar="M",

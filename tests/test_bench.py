@@ -164,9 +164,10 @@ def test_bench_writes_tables_and_resumes_without_running_again(rbot_synth, seque
     settings = BenchSettings(cues=("region",), resets=(False,))
     again = run_bench(rbot_synth, out, settings, workers=0, progress=False)
     assert len(again.skipped) == 3 and again.executor.startswith("nothing to run")
-    # an interrupted job (its results partial, no figures) is tracked again from its first frame; the others are not
+    # a job whose results are partial (interrupted while it re-ran) is tracked again from its first frame, even with
+    # an older run's figures beside them; the others are not
     csv = out / "runs" / "box" / "c_noisy" / "S1.csv"
-    (out / "runs" / "box" / "c_noisy" / "S1.metrics.json").unlink()
+    assert (out / "runs" / "box" / "c_noisy" / "S1.metrics.json").is_file()
     csv.write_text("\n".join(csv.read_text().splitlines()[:3]) + "\n")
     csv.with_name("S1.partial.json").write_text(json.dumps({"frames_expected": 6, "frames_written": 2}))
     resumed = run_bench(rbot_synth, out, settings, workers=0, progress=False)
@@ -200,9 +201,17 @@ def test_bench_cli_refuses_bad_input(rbot_synth, tmp_path, capsys):
         ([str(rbot_synth), "--protocol", "bop", "--resets", "on"], "--resets: the bop protocol tracks without resets"),
         ([str(rbot_synth), "--variants", "e_fog"], "--variants: e_fog not in"),
         ([str(tmp_path)], "not a dataset layout jaxtrack reads"),
+        ([str(rbot_synth), "--address", "127.0.0.1:1"], "--workers 0 runs the sequences in this process, --address"),
+        ([str(rbot_synth), "--timeout-min", "1"], "--timeout-min bounds a run on Ray"),
     ):
         assert main(["bench", *argv, "-o", str(tmp_path / "o"), "--workers", "0", "--quiet"]) == 2
         assert message in capsys.readouterr().err
+    for argv, message in ((["--variants", "c_noisy"], "--variants chooses the RBOT variants of --rbot"),
+                          (["--rbot", "box", "--cameras", "2"], "--cameras apply to one BOP sequence"),
+                          (["--rbot", "box", "--variants", "e_fog"], "RbotSynthConfig.variants must be some of")):
+        assert main(["synth", str(tmp_path / "s"), *argv]) == 2
+        assert message in capsys.readouterr().err
+    assert not (tmp_path / "s").exists()  # refused before anything is written
 
 
 def test_tracking_writes_its_results_frame_by_frame_and_marks_a_stopped_run(rbot_synth, sequential_bench, tmp_path):

@@ -65,6 +65,8 @@ def _check_request(out: pathlib.Path, request: dict) -> None:
             before = json.loads(path.read_text())
         except json.JSONDecodeError as e:
             raise ValueError(f"{path}: not JSON ({e}); remove it or use another -o folder") from e
+        if not isinstance(before, dict):
+            raise ValueError(f"{path}: not a bench's description (a JSON object); remove it or use another -o folder")
         theirs = {"dataset": before.get("dataset"), "layout": before.get("layout"), **(before.get("tracker") or {})}
         ours = {"dataset": request["dataset"], "layout": request["layout"], **request["tracker"]}
         for key, value in ours.items():
@@ -86,8 +88,9 @@ def run_bench(dataset: str | os.PathLike, out: str | os.PathLike, settings: Benc
         settings: protocol and tracker settings (default `BenchSettings()`: RBOT protocol, S = 1, with and without
             resets, all cues). Its x64 field is taken from this process's JAX config.
         objects, variants: only these objects / variants (RBOT variants, BCOT scenes, BOP sequences).
-        workers: 0 runs the jobs here one after another; N ≥ 1 starts a local Ray instance with N CPUs (default:
-            this machine's CPU count); ignored with `address`, which joins a running Ray cluster.
+        workers: 0 runs the jobs here one after another; N ≥ 1 runs N Ray worker processes, on a local instance
+            started with N CPUs or on the cluster at `address` (default: one per CPU of either).
+        address: join a running Ray cluster (host:port of `ray start --head`, or "auto") instead of starting one.
         use_cache: the workers use the on-disk compilation cache.
         single_thread: each Ray worker uses one XLA thread (the processes share the cores). At XLA's default
             optimisation level its poses are bit-identical to a multi-threaded run's; at level 0 (the test suite's)
@@ -110,8 +113,14 @@ def run_bench(dataset: str | os.PathLike, out: str | os.PathLike, settings: Benc
     settings = dataclasses.replace(settings, x64=bool(jax.config.jax_enable_x64))
     if workers is not None and int(workers) < 0:
         raise ValueError(f"--workers must be ≥ 0, got {workers}")
+    sequential = workers is not None and int(workers) == 0
+    if sequential and address:
+        raise ValueError("--workers 0 runs the sequences in this process, --address on a Ray cluster: give one of them")
+    if sequential and timeout_s is not None:
+        raise ValueError("--timeout-min bounds a run on Ray; with --workers 0 stop it with Ctrl-C (the same command "
+                         "resumes it)")
     items = find_items(dataset, layout, objects=objects, variants=variants)
-    out = prepare_output_folder(out, "-o/--out")
+    out = prepare_output_folder(out, "-o/--out").resolve()  # the workers do not share this process's folder
     request = {"dataset": str(pathlib.Path(dataset).resolve()), "layout": items[0].layout,
                "tracker": settings.tracker_dict(), "protocol": settings.protocol,
                "frame_steps": list(settings.frame_steps), "resets": list(settings.resets)}
@@ -143,7 +152,7 @@ def run_bench(dataset: str | os.PathLike, out: str | os.PathLike, settings: Benc
     try:
         if not todo:
             executor = "nothing to run (every job finished before)"
-        elif workers is not None and int(workers) == 0 and not address:
+        elif sequential:
             run_sequential(todo, settings, out, on_result, use_cache)
             executor = "sequential (this process)"
         else:

@@ -87,15 +87,22 @@ def _first_posed(seq) -> list[int]:
 
 
 def _bop_items(root: pathlib.Path) -> list[BenchItem]:
-    from ..io import bop_scenes, is_bop_folder, read_bop_scene, read_sequence
+    from ..io import SequenceError, bop_scenes, is_bop_folder, read_bop_scene, read_sequence
 
     scenes = bop_scenes(root)
     if scenes:  # the BOP toolkit's layout: DATASET/models + DATASET/<split>/<scene>
         items = []
         for split, scene in scenes:
+            if split.startswith("train"):  # train / train_pbr / train_synt: random views, not sequences
+                continue
             label = f"{split}/{scene}"
+            try:
+                posed = _first_posed(read_bop_scene(root, split, scene))
+            except SequenceError:  # reported as a failed run (its load raises again, with the message), not fatal
+                items.append(BenchItem(f"{label}/unreadable", "bop", str(root), (split, scene), 0, "unreadable", label))
+                continue
             items += [BenchItem(f"{label}/obj_{o}", "bop", str(root), (split, scene), o, f"obj_{o}", label)
-                      for o in _first_posed(read_bop_scene(root, split, scene))]
+                      for o in posed]
         return items
     folders = [root] if is_bop_folder(root) else sorted(p for p in root.iterdir() if p.is_dir() and is_bop_folder(p))
     items = []
@@ -118,6 +125,8 @@ def find_items(dataset: str | os.PathLike, layout: str = "auto", *, objects: lis
     from ..io import bcot_sequences, rbot_sequences
 
     root = pathlib.Path(dataset).resolve()
+    if not root.is_dir():
+        raise ValueError(f"{dataset}: no such dataset folder")
     if layout == "auto":
         layout = detect_layout(root)
     if layout not in LAYOUTS:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import os
 import time
+import warnings
 from collections.abc import Callable
 
 from ._jobs import BenchJob, BenchSettings, run_job
@@ -100,8 +101,8 @@ def run_on_ray(jobs: list[BenchJob], settings: BenchSettings, out, on_result: Ca
     called as each job finishes, `tick` every second.
 
     Args:
-        workers: worker processes (default: one per CPU of the local instance started here, or of the cluster).
-            A local instance is started with this many CPUs.
+        workers: worker processes (default: one per CPU of the local instance started here, or of the cluster);
+            a local instance is started with this many CPUs.
         address: an existing cluster ("auto", or host:port of `ray start --head`); its nodes must see the dataset
             and the output folder at the same paths.
         single_thread: one XLA thread per worker (False: XLA's default, as in this process; see `run_bench`).
@@ -115,15 +116,23 @@ def run_on_ray(jobs: list[BenchJob], settings: BenchSettings, out, on_result: Ca
     started = False
     if not ray.is_initialized():
         kwargs = {"runtime_env": {"env_vars": worker_env(single_thread)}, "log_to_driver": False, "include_dashboard": False}
-        if address:
-            ray.init(address=address, **kwargs)
-        else:
-            ray.init(num_cpus=int(workers or os.cpu_count() or 1), **kwargs)
+        with warnings.catch_warnings():
+            # Ray starts its processes with fork + exec, which JAX's at-fork warning cannot tell from a bare fork.
+            warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
+            if address:
+                ray.init(address=address, **kwargs)
+            else:
+                ray.init(num_cpus=int(workers or os.cpu_count() or 1), **kwargs)
         started = True
     try:
         nodes = [n for n in ray.nodes() if n.get("Alive")]
         cpus = int(sum(n.get("Resources", {}).get("CPU", 0) for n in nodes))
-        n_actors = max(1, min(len(jobs), int(workers) if workers and not address else max(cpus, 1)))
+        free = int(ray.available_resources().get("CPU", 0))
+        if free < 1:
+            raise ValueError(f"--address {address}: the Ray cluster has no free CPU for a bench worker" if address
+                             else "Ray has no free CPU for a bench worker")
+        # An actor holds its CPU for its whole life: more actors than free CPUs would wait for ever.
+        n_actors = max(1, min(len(jobs), int(workers) if workers else free, free))
         actor_class = ray.remote(num_cpus=1, max_restarts=0)(BenchWorker)
         actors = {i: actor_class.remote() for i in range(n_actors)}
         queue = JobQueue(jobs)

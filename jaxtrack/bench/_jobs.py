@@ -87,8 +87,11 @@ class BenchJob:
 
 
 def jobs_for(items: list[BenchItem], settings: BenchSettings) -> list[BenchJob]:
-    """Every item × frame step × reset mode, an object's jobs together (a process traces the tracker once per mesh)."""
-    return [BenchJob(i, int(s), bool(r)) for i in items for s in sorted(set(settings.frame_steps)) for r in settings.resets]
+    """Every item × frame step × reset mode (each once), an object's jobs together (a process traces the tracker's
+    step once per mesh)."""
+    steps = sorted({int(s) for s in settings.frame_steps})
+    resets = list(dict.fromkeys(bool(r) for r in settings.resets))
+    return [BenchJob(i, s, r) for i in sorted(items, key=lambda i: (i.group, i.name)) for s in steps for r in resets]
 
 
 def auc(errors_mm, max_mm: float = AUC_MAX_MM, points: int = 1000) -> float:
@@ -144,6 +147,7 @@ def run_job(job: BenchJob, settings: BenchSettings, out: str | os.PathLike, use_
     base = {"key": job.key, "name": job.item.name, "group": job.item.group, "variant": job.item.variant,
             "step": job.step, "reset": job.reset, "pid": os.getpid()}
     start = time.perf_counter()
+    job.metrics_path(out).unlink(missing_ok=True)  # an older run's figures must not outlive this run
     try:
         _prepare_process(settings, use_cache)
         from ..io import frame_step_sequence
@@ -188,6 +192,8 @@ def finished_result(job: BenchJob, settings: BenchSettings, out: pathlib.Path) -
         result = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError):
         return None  # unreadable: run it again
+    if not isinstance(result, dict) or "key" not in result:
+        return None
     if results_state(job.csv(out)).state != "complete":
         return None
     theirs, ours = result.get("settings", {}), settings.tracker_dict()

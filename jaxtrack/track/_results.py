@@ -103,6 +103,8 @@ class TrackingResultsWriter:
         from ..io._bop import bop_result_line
 
         T = np.asarray(T_world_root, np.float64)
+        if not np.all(np.isfinite(T)):  # a row no BOP reader accepts: refused here, naming the frame
+            raise ValueError(f"{self.path}: the pose of obj_id {obj_id} at im_id {im_id} is not finite")
         for ci, c in enumerate(self.camera_ids):
             self._csv.write(bop_result_line(c, im_id, obj_id, confidence, self.T_cam_world[ci] @ T,
                                             timings.get("total_s", 0.0)) + "\n")
