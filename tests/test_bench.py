@@ -92,7 +92,7 @@ def test_bcot_layout_reads_and_names_its_problems(tmp_path):
     assert [(i.name, i.group, i.variant) for i in find_items(root)] == [("light_static/cat", "cat", "light_static")]
     # problems are named
     (scene / "cat" / "0001.png").unlink()
-    with pytest.raises(SequenceError, match="frame 1 is missing"):
+    with pytest.raises(SequenceError, match="0001.png is missing"):
         read_bcot_sequence(root, "light_static", "cat")
     (scene / "K.txt").write_text("1 2 3\n")
     with pytest.raises(SequenceError, match="K.txt: 3 numbers"):

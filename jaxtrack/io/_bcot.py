@@ -12,7 +12,6 @@ A sequence is a scene and an object; the object is obj_id 1.
 
 from __future__ import annotations
 
-import itertools
 import os
 import pathlib
 import re
@@ -21,7 +20,7 @@ import numpy as np
 
 from ._bop import CameraView, Sequence, SequenceError
 from ._images import image_size
-from ._rbot import read_rbot_poses
+from ._rbot import numbered_frames, read_rbot_poses
 
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off")
 
@@ -80,15 +79,8 @@ def read_bcot_sequence(dataset: str | os.PathLike, scene: str, obj: str) -> Sequ
         have = [f"{s}/{o}" for s, o in bcot_sequences(root)] if root.is_dir() else []
         raise SequenceError(f"{folder}: no such BCOT sequence folder (sequences in {root}: {have[:8]}"
                             f"{' ...' if len(have) > 8 else ''})")
-    pattern = re.compile(r"(\d+)\.png$")
-    frames = sorted(((int(m.group(1)), p) for p in folder.iterdir() if (m := pattern.fullmatch(p.name))),
-                    key=lambda t: t[0])
-    if not frames:
-        raise SequenceError(f"{folder}: no NNNN.png frame")
+    frames = numbered_frames(folder)
     ids = [i for i, _ in frames]
-    if ids != list(range(ids[0], ids[0] + len(ids))):
-        gap = next(a + 1 for a, b in itertools.pairwise(ids) if b != a + 1)
-        raise SequenceError(f"{folder}: frame {gap} is missing (the frames must be consecutive)")
     K = read_bcot_intrinsics(root / scene / "K.txt")
     poses = read_rbot_poses(folder / "pose.txt", len(ids))[: len(ids)]  # row k: the k-th frame
     try:

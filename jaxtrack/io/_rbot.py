@@ -35,6 +35,25 @@ def _numbers(line: str) -> list[float] | None:
         return None
 
 
+def numbered_frames(folder: pathlib.Path, prefix: str = "") -> list[tuple[int, pathlib.Path]]:
+    """(number, path) of the frames `<prefix>NNNN.png` in `folder`, in order (RBOT's and BCOT's naming).
+
+    Raises:
+        SequenceError: none is there, or one is missing between the first and the last (naming it).
+    """
+    pattern = re.compile(re.escape(prefix) + r"(\d+)\.png")
+    frames = sorted(((int(m.group(1)), p) for p in folder.iterdir() if (m := pattern.fullmatch(p.name))),
+                    key=lambda t: t[0])
+    if not frames:
+        raise SequenceError(f"{folder}: no {prefix}NNNN.png frame")
+    ids = [i for i, _ in frames]
+    if ids != list(range(ids[0], ids[0] + len(ids))):
+        gap = next(a + 1 for a, b in itertools.pairwise(ids) if b != a + 1)
+        width = len(frames[0][1].name) - len(prefix) - len(".png")
+        raise SequenceError(f"{folder}: {prefix}{gap:0{width}d}.png is missing (the frames must be consecutive)")
+    return frames
+
+
 def read_rbot_poses(path: str | os.PathLike, n: int | None = None) -> np.ndarray:
     """(F, 4, 4) model → camera poses (mm) from an RBOT poses file (a header line, then 12 numbers per line; BCOT's
     pose.txt is the same without the header).
@@ -108,14 +127,8 @@ def read_rbot_sequence(dataset: str | os.PathLike, obj: str, variant: str = "a_r
     if not folder.is_dir():
         raise SequenceError(f"{folder}: no such RBOT frames folder (objects in {root}: "
                             f"{sorted(p.name for p in root.iterdir() if (p / 'frames').is_dir()) if root.is_dir() else []})")
-    pattern = re.compile(re.escape(variant) + r"(\d+)\.png$")
-    frames = sorted(((int(m.group(1)), p) for p in folder.iterdir() if (m := pattern.match(p.name))), key=lambda t: t[0])
-    if not frames:
-        raise SequenceError(f"{folder}: no {variant}NNNN.png frame")
+    frames = numbered_frames(folder, variant)
     ids = [i for i, _ in frames]
-    if ids != list(range(ids[0], ids[0] + len(ids))):
-        gap = next(a + 1 for a, b in itertools.pairwise(ids) if b != a + 1)
-        raise SequenceError(f"{folder}: {variant}{gap:04d}.png is missing (the frames must be consecutive)")
     n = ids[-1] + 1
     mesh = root / obj / f"{obj}.obj"
     if not mesh.is_file():
