@@ -2,8 +2,8 @@
 NAME.joints.csv, one frame at a time, flushed after each, so that a run killed at frame 70 of 100 leaves frames
 0-69 on disk.
 
-While a run writes, NAME.partial.json lies beside the CSV ({"frames_expected": F, "frames_written": k}); it is
-removed when the last frame is written (`TrackingResultsWriter.finish`). Files with that marker are partial:
+While a run writes, NAME.partial.json lies beside the CSV ({"frames_expected": F}, written once); it is removed
+when the last frame is written (`TrackingResultsWriter.finish`, or leaving its `with` block without an error). Files with that marker are partial:
 `results_state` says so, `jaxtrack eval` refuses them (naming how far the run got) and `jaxtrack bench` tracks such
 a sequence again from its first frame instead of trusting it.
 """
@@ -16,6 +16,16 @@ import os
 import pathlib
 
 import numpy as np
+
+
+def joints_header(joint_names) -> str:
+    """NAME.joints.csv's header: scene_id,im_id,obj_id,<joint names>."""
+    return ",".join(("scene_id", "im_id", "obj_id", *joint_names))
+
+
+def joints_row(scene_id, im_id, obj_id, values) -> str:
+    """One NAME.joints.csv row (no newline): the joint values in URDF units."""
+    return ",".join((str(int(scene_id)), str(int(im_id)), str(int(obj_id)), *(f"{v:.8f}" for v in np.asarray(values))))
 
 
 def partial_marker(csv: str | os.PathLike) -> pathlib.Path:
@@ -40,11 +50,27 @@ def results_state(csv: str | os.PathLike) -> ResultsState:
     marker = partial_marker(csv)
     if marker.is_file():
         try:
-            info = json.loads(marker.read_text())
-            return ResultsState("partial", int(info.get("frames_written", 0)), info.get("frames_expected"))
+            expected = json.loads(marker.read_text()).get("frames_expected")
         except (json.JSONDecodeError, OSError, TypeError, ValueError, AttributeError):
-            return ResultsState("partial")
+            expected = None
+        return ResultsState("partial", _frames_on_disk(csv), expected)
     return ResultsState("complete") if csv.is_file() else ResultsState("missing")
+
+
+def _frames_on_disk(csv: pathlib.Path) -> int:
+    """How many frames NAME.frames.jsonl holds whole (distinct im_ids of its complete lines)."""
+    jsonl = csv.with_name(csv.stem + ".frames.jsonl")
+    ids = set()
+    try:
+        lines = jsonl.read_text().splitlines()
+    except OSError:
+        return 0
+    for line in lines:
+        try:
+            ids.add(int(json.loads(line)["im_id"]))
+        except (json.JSONDecodeError, KeyError, TypeError, ValueError):
+            continue  # the line a killed run cut
+    return len(ids)
 
 
 def check_complete(csv: str | os.PathLike) -> None:
@@ -80,20 +106,14 @@ class TrackingResultsWriter:
         self.frames_expected = int(frames_expected)
         self.several = bool(several)
         self.joint_names = tuple(joint_names)
-        self.frames_written = 0
-        self._last_im_id = None
-        self._write_marker()
+        partial_marker(self.path).write_text(json.dumps({"frames_expected": self.frames_expected}))
         self._csv = self.path.open("w")
         self._csv.write(RESULT_HEADER + "\n")
         self._records = self.jsonl.open("w")
         self._joints = None
         if self.joint_names:
             self._joints = self.path.with_name(self.path.stem + ".joints.csv").open("w")
-            self._joints.write(",".join(("scene_id", "im_id", "obj_id", *self.joint_names)) + "\n")
-
-    def _write_marker(self) -> None:
-        partial_marker(self.path).write_text(json.dumps(
-            {"frames_expected": self.frames_expected, "frames_written": self.frames_written}))
+            self._joints.write(joints_header(self.joint_names) + "\n")
 
     def object_frame(self, *, obj_id: int, im_id: int, T_world_root, confidence: float, status: str, counts,
                      timings: dict, reset: bool = False, crop=None, lost_joints=None, joints_urdf=None) -> None:
@@ -120,17 +140,13 @@ class TrackingResultsWriter:
         }
         self._records.write(json.dumps(record) + "\n")
         if self._joints is not None and joints_urdf is not None:
-            self._joints.write(",".join((str(self.camera_ids[0]), str(int(im_id)), str(int(obj_id)),
-                                         *(f"{v:.8f}" for v in np.asarray(joints_urdf)))) + "\n")
-        self._last_im_id = im_id
+            self._joints.write(joints_row(self.camera_ids[0], im_id, obj_id, joints_urdf) + "\n")
 
     def end_frame(self) -> None:
-        """Flush the frame's rows to disk and count it in the partial marker."""
+        """Flush the frame's rows to disk."""
         for f in (self._csv, self._records, self._joints):
             if f is not None:
                 f.flush()
-        self.frames_written += 1
-        self._write_marker()
 
     def finish(self) -> tuple[pathlib.Path, pathlib.Path]:
         """Close the files and remove the partial marker: the results are complete. Returns (csv, jsonl)."""
@@ -143,6 +159,16 @@ class TrackingResultsWriter:
         for f in (self._csv, self._records, self._joints):
             if f is not None and not f.closed:
                 f.close()
+
+    def __enter__(self) -> TrackingResultsWriter:  # noqa: PYI034 - typing.Self needs Python 3.11; we support 3.10
+        return self
+
+    def __exit__(self, kind, error, trace) -> None:
+        """Complete (`finish`) when the block ran to its end, else only closed: the marker says partial."""
+        if kind is None:
+            self.finish()
+        else:
+            self.close()
 
 
 def write_run_frame(writer: TrackingResultsWriter, run, k: int) -> None:

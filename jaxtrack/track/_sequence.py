@@ -15,6 +15,7 @@ names and units: radians, metres).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
@@ -28,7 +29,7 @@ from .._status import Status
 from ..geometry import make_camera, rotation_error_deg, stack_cameras
 from ..solve import Cue
 from ._recovery import RecoveryConfig
-from ._results import TrackingResultsWriter, check_complete, write_run_frame
+from ._results import TrackingResultsWriter, check_complete, joints_header, joints_row, write_run_frame
 from ._step import TrackerConfig, TrackerParams
 from ._tracker import Tracker
 
@@ -293,7 +294,7 @@ def track_sequence(
                                 joints_urdf=None if articulated is None else thetas[-1] / articulated["scale"])
             writer.end_frame()
 
-    try:
+    with writer if writer is not None else contextlib.nullcontext():  # rows on disk as they come; complete at the end
         start = time.perf_counter()
         images = frames(0)
         state = tracker.start(images, np.linalg.inv(T_cam0_world) @ init_pose, theta0)
@@ -343,11 +344,6 @@ def track_sequence(
                 bar.set_postfix(status=status[-1], conf=f"{conf[-1]:.2f}")
         if bar is not None:
             bar.close()
-    finally:
-        if writer is not None:
-            writer.close()
-    if writer is not None:
-        writer.finish()
     tracker.join_background()  # a background compile must not outlive the run (the process may exit next)
     return TrackingRun(
         frame_ids=list(view0.frame_ids[:n]), obj_id=int(obj_id), T_world_root=np.stack(poses), theta=np.stack(thetas),
@@ -477,7 +473,7 @@ def track_objects(
                                     timings=timings[i][-1], crop=crops[i][-1])
             writer.end_frame()
 
-    try:
+    with writer if writer is not None else contextlib.nullcontext():
         t0 = time.perf_counter()
         images = frames(0)
         states = joint.start(images, starts)
@@ -512,11 +508,6 @@ def track_objects(
                 bar.set_postfix(status="/".join(s[-1] for s in status))
         if bar is not None:
             bar.close()
-    finally:
-        if writer is not None:
-            writer.close()
-    if writer is not None:
-        writer.finish()
     joint.join_background()
     return [TrackingRun(
         frame_ids=list(view0.frame_ids[:n]), obj_id=o, T_world_root=np.stack(poses[i]), theta=np.zeros((n, 0)),
@@ -581,17 +572,14 @@ def write_tracking_results(run: TrackingRun | list[TrackingRun], path: str | os.
     frames = len(runs[0].frame_ids)
     if any(len(r.frame_ids) != frames or list(r.camera_ids) != list(runs[0].camera_ids) for r in runs):
         raise ValueError("write_tracking_results: the runs must share their frames and cameras")
-    writer = TrackingResultsWriter(path, camera_ids=runs[0].camera_ids, T_cam_world=runs[0].T_cam_world,
-                                   cue_names=runs[0].cue_names, frames_expected=frames, several=len(runs) > 1,
-                                   joint_names=runs[0].joint_names if len(runs) == 1 else ())
-    try:
+    with TrackingResultsWriter(path, camera_ids=runs[0].camera_ids, T_cam_world=runs[0].T_cam_world,
+                               cue_names=runs[0].cue_names, frames_expected=frames, several=len(runs) > 1,
+                               joint_names=runs[0].joint_names if len(runs) == 1 else ()) as writer:
         for k in range(frames):
             for r in runs:
                 write_run_frame(writer, r, k)
             writer.end_frame()
-    finally:
-        writer.close()
-    csv, jsonl = writer.finish()
+    csv, jsonl = writer.path, writer.jsonl
     return csv, jsonl
 
 
@@ -601,10 +589,8 @@ def write_joint_results(path: str | os.PathLike, run: TrackingRun) -> pathlib.Pa
 
     path = prepare_output_file(path, "write_joint_results: path")
     values = run.joints_urdf()
-    lines = [",".join(("scene_id", "im_id", "obj_id", *run.joint_names))]
-    for k, im_id in enumerate(run.frame_ids):
-        lines.append(",".join((str(int(run.camera_ids[0])), str(int(im_id)), str(int(run.obj_id)),
-                               *(f"{v:.8f}" for v in values[k]))))
+    lines = [joints_header(run.joint_names)]
+    lines += [joints_row(run.camera_ids[0], im_id, run.obj_id, values[k]) for k, im_id in enumerate(run.frame_ids)]
     path.write_text("\n".join(lines) + "\n")
     return path
 
