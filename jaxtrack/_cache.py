@@ -4,7 +4,8 @@ from __future__ import annotations
 
 
 def enable_compilation_cache(path: str | None = None) -> str:
-    """Keep compiled XLA programs on disk so a second run with the same frame size skips compiling.
+    """Keep compiled XLA programs on disk so a second run with the same frame size skips compiling, and the tracker's
+    traced programs (`jaxtrack._exported`, in `<path>/exported`) so that it also skips tracing them.
 
     The directory is `path`, else $JAXTRACK_CACHE_DIR, else ~/.cache/jaxtrack/xla.
     """
@@ -18,4 +19,7 @@ def enable_compilation_cache(path: str | None = None) -> str:
     # Every program, the small ones too: a fresh process otherwise compiles again the ~50 small programs of
     # `Tracker.start` and its host helpers (1.4 s of a 4 s warm start).
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    from ._exported import enable_exported_cache
+
+    enable_exported_cache(os.path.join(path, "exported"))
     return path

@@ -22,6 +22,10 @@ os.environ.setdefault("JAXTRACK_VIEW_SUBDIVISIONS", "2")
 # Trackers compile their recovery program when a frame is first lost, not in the background after the first frame:
 # most of the suite's trackers never lose the object (tests/test_tracker.py checks the warm-up itself).
 os.environ.setdefault("JAXTRACK_RECOVERY_WARMUP", "0")
+# No exported programs on disk (`jaxtrack._exported`) even where a test runs `jaxtrack track` in this process: the
+# exported step compiles as another XLA program than the plain one the other tests share, and a program loaded from
+# disk is not traced, which the trace-count tests would read as a missing trace. tests/test_exported.py turns it on.
+os.environ.setdefault("JAXTRACK_EXPORT_CACHE", "0")
 
 jax.config.update("jax_enable_x64", True)
 

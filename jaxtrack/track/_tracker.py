@@ -28,6 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._exported import persistent_jit
 from .._status import Status
 from ..cues.flow import articulated_params, rigid_params
 from ..cues.levelset import projected_boxes, region_crop, region_params
@@ -60,8 +61,8 @@ from ._step import (
     track_step,
 )
 
-_track_step_jit = eqx.filter_jit(track_step)
-_recover_pose_jit = eqx.filter_jit(recover_pose)
+_track_step_jit = persistent_jit(track_step)
+_recover_pose_jit = persistent_jit(recover_pose)
 
 # Factor on the Section V flow weights in the tracker's defaults (see `default_params`).
 TRACKER_FLOW_FACTOR = 0.1
@@ -78,7 +79,7 @@ def _as_array(scales):
     return None if scales is None else jnp.asarray(scales)
 
 
-@eqx.filter_jit
+@persistent_jit
 def _initial_modality_states(setup: TrackerSetup, frames, offsets, T, theta, params: TrackerParams, crop_shape,
                              scales=None, occluder_depth=None):
     """Every configured modality's state at the first frame (known pose), one compiled program
@@ -93,7 +94,7 @@ def _initial_modality_states(setup: TrackerSetup, frames, offsets, T, theta, par
         for i, m in enumerate(setup.config.modalities()))
 
 
-@eqx.filter_jit
+@persistent_jit
 def _initial_appearance_jit(setup: TrackerSetup, frames, T, theta, params: OcclusionParams, offsets=None, crop_shape=None,
                             scales=None):
     """Silhouettes (C, H, W) and the appearance model seen at the known first pose, one compiled program

@@ -1,0 +1,241 @@
+"""Traced programs kept on disk between processes (`jax.export`), so that a warm process skips the Python trace and
+the lowering of the tracker's large programs, not only XLA's compile.
+
+The on-disk XLA compilation cache (`enable_compilation_cache`) keeps compiled executables, but every new process
+still traces the step in Python and lowers it to StableHLO before it can look the executable up: 4.1 of the 6.1 s
+that a warm process spent on its first all-cues step (640x480, this 2-core CPU). `persistent_jit(fn)` is
+`eqx.filter_jit(fn)` that also keeps, per call signature, the exported (traced and lowered) program in
+`<cache folder>/exported/`; a process that finds it deserialises it (milliseconds) and calls it, and the compile
+cache gives the executable.
+
+A signature is what decides the program: the function, the arguments' tree structure with its static leaves
+(everything that is not an array: configs, raster plans, crop shapes), the arrays' shapes and dtypes, the source of
+the `jaxtrack` package, the versions of jax, jaxlib, equinox, optimistix and lineax, and jax's x64 setting. It is
+pickled and hashed; a signature that cannot be pickled (a lambda in a static field) or whose pickle is not
+reproducible runs `eqx.filter_jit` as before (a miss, never a wrong program). Calls under a transformation (vmap,
+grad: tracers among the arguments) run `eqx.filter_jit` too.
+
+Off unless a folder is set: `enable_compilation_cache` sets it (`jaxtrack track`, `bench`, the experiments);
+`JAXTRACK_EXPORT_CACHE=0` turns it off. Serialisation needs the `flatbuffers` package (a dependency).
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import io
+import os
+import pathlib
+import pickle
+import threading
+import warnings
+
+import equinox as eqx
+import jax
+
+_FOLDER: list[pathlib.Path | None] = [None]
+_PLAIN = object()  # an entry meaning "this signature runs eqx.filter_jit"
+
+
+def enable_exported_cache(folder: str | os.PathLike | None) -> pathlib.Path | None:
+    """Keep exported programs in `folder` (made if missing); None turns the cache off. $JAXTRACK_EXPORT_CACHE=0 keeps it
+    off whatever the folder. Returns the folder in use."""
+    if folder is None or os.environ.get("JAXTRACK_EXPORT_CACHE", "1") == "0":
+        _FOLDER[0] = None
+        return None
+    path = pathlib.Path(folder)
+    path.mkdir(parents=True, exist_ok=True)
+    _FOLDER[0] = path
+    return path
+
+
+def exported_cache_folder() -> pathlib.Path | None:
+    """The folder of exported programs, or None when the cache is off."""
+    return _FOLDER[0]
+
+
+# --- pickling eqx treedefs: equinox marks a module's array fields with a sentinel in the tree's aux data ---------
+class _Probe(eqx.Module):
+    a: object
+
+
+_MISSING = jax.tree_util.tree_structure(_Probe(0.0)).node_data()[1][0]
+
+
+class _Pickler(pickle.Pickler):
+    def persistent_id(self, obj):
+        return "eqx-missing" if obj is _MISSING else None
+
+
+class _Unpickler(pickle.Unpickler):
+    def persistent_load(self, pid):
+        if pid != "eqx-missing":
+            raise pickle.UnpicklingError(f"unknown persistent id {pid!r}")
+        return _MISSING
+
+
+def _dumps(obj) -> bytes:
+    buffer = io.BytesIO()
+    _Pickler(buffer, protocol=4).dump(obj)
+    return buffer.getvalue()
+
+
+def _loads(data: bytes):
+    return _Unpickler(io.BytesIO(data)).load()
+
+
+@functools.cache
+def _environment() -> tuple:
+    """What, besides the signature, decides a traced program: jaxtrack's source and the versions of the libraries that
+    trace it (computed once per process)."""
+    import importlib.metadata
+
+    digest = hashlib.sha256()
+    root = pathlib.Path(__file__).resolve().parent
+    for path in sorted(root.rglob("*.py")):
+        digest.update(str(path.relative_to(root)).encode())
+        digest.update(path.read_bytes())
+    versions = []
+    for name in ("jax", "jaxlib", "equinox", "optimistix", "lineax"):
+        try:
+            versions.append((name, importlib.metadata.version(name)))
+        except importlib.metadata.PackageNotFoundError:
+            versions.append((name, None))
+    return digest.hexdigest(), tuple(versions)
+
+
+class _Entry:
+    """One signature's program: the jitted call of the exported module and how to rebuild the output tree."""
+
+    def __init__(self, exported, out_treedef, out_is_dynamic, out_static):
+        # One placement for every argument: jit would otherwise lower (and compile) the call again when some inputs
+        # are committed to the device (outputs of the previous call) and others not.
+        device = jax.sharding.SingleDeviceSharding(jax.devices()[0])
+        self.call = jax.jit(exported.call, in_shardings=device, out_shardings=device)
+        self.out_treedef, self.out_is_dynamic, self.out_static = out_treedef, out_is_dynamic, out_static
+
+    def __call__(self, dynamic):
+        out = iter(self.call(*dynamic))
+        static = iter(self.out_static)
+        return jax.tree_util.tree_unflatten(self.out_treedef, [next(out) if d else next(static) for d in self.out_is_dynamic])
+
+
+class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
+    """`eqx.filter_jit(fn)` whose traced programs are also kept on disk (see the module's docstring).
+
+    Args:
+        fn: a function of pytrees; arrays are traced, every other leaf is static (as `eqx.filter_jit`).
+
+    Attributes:
+        loaded: signatures this process found on disk; exported: signatures it traced and wrote.
+    """
+
+    def __init__(self, fn):
+        self.fn = fn
+        self.name = getattr(fn, "__name__", "fn").strip("_") or "fn"
+        self.qualname = f"{getattr(fn, '__module__', '?')}.{getattr(fn, '__qualname__', self.name)}"
+        self.plain = eqx.filter_jit(fn)
+        self.memory: dict = {}
+        self.loaded = 0
+        self.exported = 0
+        self._lock = threading.Lock()
+        functools.update_wrapper(self, fn)
+
+    def __call__(self, *args, **kwargs):
+        folder = _FOLDER[0]
+        if folder is None:
+            return self.plain(*args, **kwargs)
+        leaves, treedef = jax.tree_util.tree_flatten((args, kwargs))
+        is_dynamic = tuple(eqx.is_array(x) for x in leaves)
+        dynamic = [x for x, d in zip(leaves, is_dynamic) if d]
+        if any(isinstance(x, jax.core.Tracer) for x in dynamic):  # under vmap / grad / an outer jit
+            return self.plain(*args, **kwargs)
+        static = tuple(x for x, d in zip(leaves, is_dynamic) if not d)
+        # Weak types are not part of the signature: outputs of an exported program come back strongly typed, and a
+        # state that went through one step must not make a second program.
+        types = [jax.typeof(x) for x in dynamic]
+        avals = tuple((tuple(a.shape), str(a.dtype)) for a in types)
+        if any(getattr(a, "weak_type", False) for a in types):  # the exported program's call takes them strongly typed
+            dynamic = [jax.lax.convert_element_type(x, a.dtype) if getattr(a, "weak_type", False) else x
+                       for x, a in zip(dynamic, types)]
+        try:
+            key = (treedef, is_dynamic, static, avals)
+            entry = self.memory.get(key)
+        except TypeError:  # an unhashable static leaf: eqx.filter_jit says what it needs
+            return self.plain(*args, **kwargs)
+        if entry is None:
+            with self._lock:
+                entry = self.memory.get(key)
+                if entry is None:
+                    entry = self.memory[key] = self._entry(folder, treedef, is_dynamic, static, avals)
+        if entry is _PLAIN:
+            return self.plain(*args, **kwargs)
+        return entry(dynamic)
+
+    def _signature(self, treedef, is_dynamic, static, avals) -> bytes | None:
+        try:
+            return _dumps((self.qualname, _environment(), jax.config.jax_enable_x64, treedef, is_dynamic, static, avals))
+        except Exception:  # noqa: BLE001  (not picklable: no disk cache for this signature)
+            return None
+
+    def digest(self, *args, **kwargs) -> str | None:
+        """The hex digest that names these arguments' program on disk (the file `<name>-<digest>.jaxexport`), or None
+        when its signature cannot be pickled (such calls run `eqx.filter_jit`)."""
+        leaves, treedef = jax.tree_util.tree_flatten((args, kwargs))
+        is_dynamic = tuple(eqx.is_array(x) for x in leaves)
+        static = tuple(x for x, d in zip(leaves, is_dynamic) if not d)
+        avals = tuple((tuple(a.shape), str(a.dtype)) for a in (jax.typeof(x) for x, d in zip(leaves, is_dynamic) if d))
+        signature = self._signature(treedef, is_dynamic, static, avals)
+        return None if signature is None else hashlib.sha256(signature).hexdigest()[:40]
+
+    def _entry(self, folder: pathlib.Path, treedef, is_dynamic, static, avals):
+        signature = self._signature(treedef, is_dynamic, static, avals)
+        if signature is None:
+            return _PLAIN
+        path = folder / f"{self.name}-{hashlib.sha256(signature).hexdigest()[:40]}.jaxexport"
+        entry = self._load(path, signature) if path.is_file() else None
+        if entry is not None:
+            self.loaded += 1
+            return entry
+        return self._export(path, signature, treedef, is_dynamic, static, avals)
+
+    @staticmethod
+    def _load(path: pathlib.Path, signature: bytes) -> _Entry | None:
+        """The program in `path`, or None when the file is damaged or holds another signature (it is exported again and
+        replaced)."""
+        try:
+            stored = _loads(path.read_bytes())
+            if stored["signature"] != signature:
+                return None
+            return _Entry(jax.export.deserialize(stored["exported"]), *stored["out"])
+        except Exception:  # noqa: BLE001  (truncated, foreign, or written by another jax)
+            return None
+
+    def _export(self, path: pathlib.Path, signature: bytes, treedef, is_dynamic, static, avals):
+        out_structure = []
+
+        def flat(*dynamic_leaves):
+            it_dynamic, it_static = iter(dynamic_leaves), iter(static)
+            args, kwargs = jax.tree_util.tree_unflatten(treedef, [next(it_dynamic) if d else next(it_static) for d in is_dynamic])
+            out_leaves, out_treedef = jax.tree_util.tree_flatten(self.fn(*args, **kwargs))
+            out_is_dynamic = tuple(eqx.is_array(x) for x in out_leaves)
+            out_structure.append((out_treedef, out_is_dynamic, tuple(x for x, d in zip(out_leaves, out_is_dynamic) if not d)))
+            return [x for x, d in zip(out_leaves, out_is_dynamic) if d]
+
+        try:
+            exported = jax.export.export(jax.jit(flat))(*[jax.ShapeDtypeStruct(shape, dtype) for shape, dtype in avals])
+        except Exception as error:  # noqa: BLE001  (a program export cannot hold, e.g. a host callback)
+            warnings.warn(f"jaxtrack: {self.qualname} cannot be exported ({type(error).__name__}: {error}); "
+                          "it is traced in every process", RuntimeWarning, stacklevel=3)
+            return _PLAIN
+        entry = _Entry(exported, *out_structure[-1])
+        self.exported += 1
+        try:
+            data = _dumps({"signature": signature, "exported": exported.serialize(), "out": out_structure[-1]})
+            temporary = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}")
+            temporary.write_bytes(data)
+            os.replace(temporary, path)
+        except Exception as error:  # noqa: BLE001  (no flatbuffers, a read-only folder: run from memory)
+            warnings.warn(f"jaxtrack: the traced {self.name} could not be kept in {path.parent} ({type(error).__name__}: "
+                          f"{error}); a new process traces it again", RuntimeWarning, stacklevel=3)
+        return entry

@@ -1,0 +1,193 @@
+"""Traced programs kept on disk (`jaxtrack._exported.persistent_jit`): the same outputs as `eqx.filter_jit`, a second
+"process" (a fresh wrapper, nothing in memory) loads the program instead of tracing it, and every signature that
+could decide another program gets its own file."""
+
+import os
+import subprocess
+import sys
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxtrack import _exported
+from jaxtrack._exported import enable_exported_cache, persistent_jit
+
+
+@pytest.fixture
+def folder(tmp_path, monkeypatch):
+    """The exported cache on, in a fresh folder, for this test only (the suite runs with it off)."""
+    monkeypatch.delenv("JAXTRACK_EXPORT_CACHE", raising=False)
+    monkeypatch.setattr(_exported, "_FOLDER", [None])
+    return enable_exported_cache(tmp_path / "exported")
+
+
+class Scaled(eqx.Module):
+    weights: jax.Array
+    power: int = eqx.field(static=True)
+    name: str = eqx.field(static=True, default="scaled")
+
+
+TRACES = []
+
+
+def model(m: Scaled, x, offset=None, factor=2.0):
+    """Arrays traced, `power`, `factor` and the absence of `offset` static; returns a module, an array and a string."""
+    TRACES.append(1)
+    y = factor * (m.weights * x) ** m.power
+    if offset is not None:
+        y = y + offset
+    return Scaled(y, m.power + 1, "out"), jnp.sum(y), "done"
+
+
+def _files(folder):
+    return sorted(p.name for p in folder.iterdir())
+
+
+def test_same_outputs_as_filter_jit_and_a_fresh_wrapper_loads_instead_of_tracing(folder):
+    m, x = Scaled(jnp.arange(3.0), 2), jnp.array([1.0, -2.0, 0.5])
+    expected = eqx.filter_jit(model)(m, x, offset=jnp.ones(3), factor=3.0)
+    first = persistent_jit(model)
+    got = first(m, x, offset=jnp.ones(3), factor=3.0)
+    assert first.exported == 1 and first.loaded == 0 and len(_files(folder)) == 1
+    fresh = persistent_jit(model)  # a new process: nothing in memory
+    del TRACES[:]
+    again = fresh(m, x, offset=jnp.ones(3), factor=3.0)
+    assert TRACES == [] and fresh.loaded == 1 and fresh.exported == 0
+    for out in (got, again):
+        assert isinstance(out[0], Scaled) and out[0].power == 3 and out[0].name == "out" and out[2] == "done"
+        assert np.array_equal(np.asarray(out[0].weights), np.asarray(expected[0].weights))
+        assert float(out[1]) == float(expected[1])
+    # Later calls with new values of the same signature: no trace, no file.
+    del TRACES[:]
+    out = fresh(Scaled(jnp.ones(3), 2), 2 * x, offset=jnp.zeros(3), factor=3.0)
+    assert TRACES == [] and len(_files(folder)) == 1
+    assert np.allclose(np.asarray(out[0].weights), 3.0 * (2 * np.asarray(x)) ** 2)
+
+
+def test_every_static_or_shape_change_is_its_own_program(folder):
+    f = persistent_jit(model)
+    m, x = Scaled(jnp.arange(3.0), 2), jnp.ones(3)
+    outs = [f(m, x), f(Scaled(jnp.arange(3.0), 3), x), f(m, x, factor=5.0), f(m, x, offset=jnp.ones(3)),
+            f(Scaled(jnp.arange(4.0), 2), jnp.ones(4)), f(Scaled(jnp.arange(3.0), 2, "other"), x),
+            f(m, x.astype(jnp.float32))]
+    assert f.exported == len(outs) and len(_files(folder)) == len(outs)
+    fresh = persistent_jit(model)
+    for args, kwargs, out in zip([(m, x), (Scaled(jnp.arange(3.0), 3), x), (m, x)], [{}, {}, {"factor": 5.0}], outs):
+        assert float(fresh(*args, **kwargs)[1]) == float(out[1])
+    assert fresh.loaded == 3 and fresh.exported == 0
+    assert float(outs[1][1]) == float(jnp.sum(2.0 * jnp.arange(3.0) ** 3))
+    assert float(outs[2][1]) == float(jnp.sum(5.0 * jnp.arange(3.0) ** 2))
+
+
+def test_weak_types_do_not_make_a_second_program(folder):
+    f = persistent_jit(lambda a, b: (a * b, a + 1))
+    weak = jnp.asarray(2.0)  # weakly typed
+    assert jax.typeof(weak).weak_type
+    out = f(weak, jnp.ones(2))
+    out = f(out[1], jnp.ones(2))  # strongly typed now
+    assert f.exported == 1 and len(f.memory) == 1 and float(out[0][0]) == 3.0
+
+
+class WithFunction(eqx.Module):
+    fn: object = eqx.field(static=True)
+
+
+def test_what_cannot_be_pickled_or_is_traced_runs_filter_jit(folder):
+    local = persistent_jit(lambda m, x: m.fn(x))
+    assert float(local(WithFunction(lambda v: 3 * v), jnp.asarray(2.0))) == 6.0  # a lambda: no signature on disk
+    assert local.digest(WithFunction(lambda v: 3 * v), jnp.asarray(2.0)) is None
+    assert local.exported == 0 and _files(folder) == []
+    f = persistent_jit(model)
+    m = Scaled(jnp.arange(3.0), 2)
+    batched = jax.vmap(lambda x: f(m, x)[1])(jnp.arange(6.0).reshape(2, 3))  # under vmap: tracers, filter_jit
+    assert np.allclose(np.asarray(batched), [2 * np.sum((np.arange(3.0) * r) ** 2) for r in np.arange(6.0).reshape(2, 3)])
+    grad = jax.grad(lambda x: f(m, x)[1])(jnp.ones(3))
+    assert np.allclose(np.asarray(grad), 4 * np.arange(3.0) ** 2)
+    assert f.exported == 0 and _files(folder) == []
+
+
+def test_off_without_a_folder_and_a_damaged_file_is_replaced(folder, monkeypatch):
+    f = persistent_jit(model)
+    m, x = Scaled(jnp.arange(3.0), 2), jnp.ones(3)
+    f(m, x)
+    (path,) = list(folder.iterdir())
+    path.write_bytes(b"not a program")
+    fresh = persistent_jit(model)
+    assert float(fresh(m, x)[1]) == float(f(m, x)[1]) and fresh.exported == 1 and fresh.loaded == 0
+    assert path.stat().st_size > 100
+    monkeypatch.setenv("JAXTRACK_EXPORT_CACHE", "0")
+    assert enable_exported_cache(folder) is None
+    off = persistent_jit(model)
+    off(m, x)
+    assert off.exported == 0 and off.loaded == 0
+
+
+_DIGEST_SCRIPT = """
+import os, numpy as np, jaxtrack as jt
+from jaxtrack.render import make_mesh
+from jaxtrack.track import Tracker, TrackerConfig
+from jaxtrack.track._tracker import _track_step_jit
+import trimesh
+box = trimesh.creation.box((80.0, 60.0, 40.0))
+cam = jt.make_camera(np.array([[100.0, 0, 40], [0, 100.0, 30], [0, 0, 1]]), 80, 60)
+tracker = Tracker(make_mesh(box.vertices, box.faces), cam)  # the default configuration: lines, flow, SIFT
+T = np.eye(4); T[2, 3] = 400.0
+tracker._replan(np.asarray(T, np.float32), np.zeros((0,), np.float32))
+tracker.prepare()  # the sparse viewpoint model: part of the signature
+print("DIGEST", _track_step_jit.digest(tracker.setup(), T=np.asarray(T, np.float32)))
+"""
+
+
+def test_the_tracker_setups_signature_is_the_same_in_every_process():
+    """String hashing is randomised per process: a signature that pickled a set of strings would differ between two
+    runs, and the disk cache would never hit."""
+    digests = []
+    for seed in ("1", "2"):
+        env = dict(os.environ, PYTHONHASHSEED=seed, JAX_PLATFORMS="cpu")
+        proc = subprocess.run([sys.executable, "-c", _DIGEST_SCRIPT], check=False, capture_output=True, text=True, env=env, timeout=300)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        digests.append(next(line.split()[1] for line in proc.stdout.splitlines() if line.startswith("DIGEST")))
+    assert digests[0] == digests[1] and digests[0] != "None"
+
+
+def test_a_tracker_with_the_cache_tracks_as_without_and_a_new_process_traces_nothing(folder, monkeypatch):
+    import jaxtrack as jt
+    from jaxtrack.render import make_mesh
+    from jaxtrack.synth import SynthConfig, render_sequence
+    from jaxtrack.track import Tracker, TrackerConfig
+    from jaxtrack.track import _tracker as tracker_module
+    from jaxtrack.track._step import track_step
+
+    cfg = SynthConfig(object="box", appearance="photo", texture_photo="astronaut", size_mm=160, motion="random",
+                      step_px=3, step_deg=1.5, frames=3, width=128, height=96, focal=140, background="coffee", seed=5)
+    seq = render_sequence(cfg)
+    mesh, camera = make_mesh(seq["mesh"].vertices, seq["mesh"].faces), jt.make_camera(seq["K"], 128, 96)
+    images, T0 = seq["images"][0].astype(np.float32), seq["T_cam_obj"][0][0]
+
+    def run():
+        tracker = Tracker(mesh, camera, config=TrackerConfig(cues=("region",)))
+        state = tracker.start(images[0], T0)
+        poses = []
+        for k in (1, 2):
+            state, result, _ = tracker.step(state, images[k])
+            poses.append(np.asarray(result.T_world_root))
+        return np.stack(poses)
+
+    monkeypatch.setattr(_exported, "_FOLDER", [None])
+    plain = run()  # eqx.filter_jit
+    monkeypatch.setattr(_exported, "_FOLDER", [folder])
+    with_cache = run()
+    assert any(name.startswith("track_step-") for name in _files(folder))
+    # A new process: nothing in memory; the step, the modality states and the appearance come from the folder.
+    for wrapped in (tracker_module._track_step_jit, tracker_module._initial_modality_states, tracker_module._initial_appearance_jit):
+        monkeypatch.setattr(wrapped, "memory", {})
+        monkeypatch.setattr(wrapped, "loaded", 0)
+    before = eqx.debug.get_num_traces(track_step)
+    again = run()
+    assert eqx.debug.get_num_traces(track_step) == before
+    assert tracker_module._track_step_jit.loaded == 1 and tracker_module._initial_modality_states.loaded == 1
+    assert np.array_equal(with_cache, again)
+    assert np.allclose(plain, with_cache, rtol=0, atol=1e-9), np.abs(plain - with_cache).max()
