@@ -85,6 +85,12 @@ def _loads(data: bytes):
 
 
 @functools.cache
+def _canonical(dtype, x64: bool | None = None) -> str:
+    """The dtype name an array of `dtype` has inside jax (float64 → float32 without x64; `x64` keys the cache)."""
+    return str(jax.dtypes.canonicalize_dtype(dtype))
+
+
+@functools.cache
 def _environment() -> tuple:
     """What, besides the signature, decides a traced program: jaxtrack's source and the versions of the libraries that
     trace it (computed once per process)."""
@@ -153,11 +159,9 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
         static = tuple(x for x, d in zip(leaves, is_dynamic) if not d)
         # Weak types are not part of the signature: outputs of an exported program come back strongly typed, and a
         # state that went through one step must not make a second program.
-        types = [jax.typeof(x) for x in dynamic]
-        avals = tuple((tuple(a.shape), str(a.dtype)) for a in types)
-        if any(getattr(a, "weak_type", False) for a in types):  # the exported program's call takes them strongly typed
-            dynamic = [jax.lax.convert_element_type(x, a.dtype) if getattr(a, "weak_type", False) else x
-                       for x, a in zip(dynamic, types)]
+        avals = tuple((x.shape, _canonical(x.dtype, jax.config.jax_enable_x64)) for x in dynamic)
+        if any(getattr(x, "weak_type", False) for x in dynamic):  # the exported program's call takes them strongly typed
+            dynamic = [jax.lax.convert_element_type(x, x.dtype) if getattr(x, "weak_type", False) else x for x in dynamic]
         try:
             key = (treedef, is_dynamic, static, avals)
             entry = self.memory.get(key)
@@ -184,7 +188,7 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
         leaves, treedef = jax.tree_util.tree_flatten((args, kwargs))
         is_dynamic = tuple(eqx.is_array(x) for x in leaves)
         static = tuple(x for x, d in zip(leaves, is_dynamic) if not d)
-        avals = tuple((tuple(a.shape), str(a.dtype)) for a in (jax.typeof(x) for x, d in zip(leaves, is_dynamic) if d))
+        avals = tuple((x.shape, _canonical(x.dtype, jax.config.jax_enable_x64)) for x, d in zip(leaves, is_dynamic) if d)
         signature = self._signature(treedef, is_dynamic, static, avals)
         return None if signature is None else hashlib.sha256(signature).hexdigest()[:40]
 
