@@ -10,10 +10,12 @@ cache gives the executable.
 
 A signature is what decides the program: the function, the arguments' tree structure with its static leaves
 (everything that is not an array: configs, raster plans, crop shapes), the arrays' shapes and dtypes, the source of
-the `jaxtrack` package, the versions of jax, jaxlib, equinox, optimistix and lineax, and jax's x64 setting. It is
-pickled and hashed; a signature that cannot be pickled (a lambda in a static field) or whose pickle is not
-reproducible runs `eqx.filter_jit` as before (a miss, never a wrong program). Calls under a transformation (vmap,
-grad: tracers among the arguments) run `eqx.filter_jit` too.
+the `jaxtrack` package, the versions of jax, jaxlib, equinox, optimistix, lineax and numpy, the registered modalities,
+jax's x64 setting and $JAXTRACK_VIEW_SUBDIVISIONS. It is pickled and hashed. A signature that cannot be pickled (a
+lambda in a static field), that refers to a class or function outside those packages (its code could change under
+the same name: a user's modality, also one registered by name), or whose pickle is not reproducible runs
+`eqx.filter_jit` as before (a miss, never a wrong program). Calls under a transformation (vmap, grad: tracers among
+the arguments) run `eqx.filter_jit` too.
 
 Off unless a folder is set: `enable_compilation_cache` sets it (`jaxtrack track`, `bench`, the experiments);
 `JAXTRACK_EXPORT_CACHE=0` turns it off. Serialisation needs the `flatbuffers` package (a dependency).
@@ -28,6 +30,7 @@ import os
 import pathlib
 import pickle
 import threading
+import types
 import warnings
 
 import equinox as eqx
@@ -62,9 +65,30 @@ class _Probe(eqx.Module):
 _MISSING = jax.tree_util.tree_structure(_Probe(0.0)).node_data()[1][0]
 
 
+# Code that the source hash covers, or whose version is in the signature. A class or function from anywhere else
+# (a user's modality in a notebook) can change without changing its pickled name: such a signature is not kept.
+_KNOWN_CODE = ("jaxtrack", "jax", "jaxlib", "equinox", "optimistix", "lineax", "numpy", "ml_dtypes", "builtins",
+               "collections", "copyreg", "dataclasses", "enum", "functools", "operator", "types", "typing")
+
+
+class _UnknownCode(Exception):
+    """The signature refers to code whose changes it cannot see."""
+
+
+def _check_known(obj) -> None:
+    module = getattr(obj, "__module__", None) or ""
+    if module.split(".")[0] not in _KNOWN_CODE:
+        raise _UnknownCode(f"{module}.{getattr(obj, '__qualname__', obj)}")
+
+
 class _Pickler(pickle.Pickler):
     def persistent_id(self, obj):
         return "eqx-missing" if obj is _MISSING else None
+
+    def reducer_override(self, obj):
+        if isinstance(obj, type | types.FunctionType | types.BuiltinFunctionType | types.MethodType):
+            _check_known(obj)  # pickled by reference: its code is not in the bytes
+        return NotImplemented
 
 
 class _Unpickler(pickle.Unpickler):
@@ -102,7 +126,7 @@ def _environment() -> tuple:
         digest.update(str(path.relative_to(root)).encode())
         digest.update(path.read_bytes())
     versions = []
-    for name in ("jax", "jaxlib", "equinox", "optimistix", "lineax"):
+    for name in ("jax", "jaxlib", "equinox", "optimistix", "lineax", "numpy"):
         try:
             versions.append((name, importlib.metadata.version(name)))
         except importlib.metadata.PackageNotFoundError:
@@ -177,9 +201,15 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
         return entry(dynamic)
 
     def _signature(self, treedef, is_dynamic, static, avals) -> bytes | None:
+        from .modality._registry import _MODALITIES
+
         try:
-            return _dumps((self.qualname, _environment(), jax.config.jax_enable_x64, treedef, is_dynamic, static, avals))
-        except Exception:  # noqa: BLE001  (not picklable: no disk cache for this signature)
+            for cls in _MODALITIES.values():  # a configuration names its modalities; the classes are looked up when traced
+                _check_known(cls)
+            registry = tuple(sorted((name, cls.__module__, cls.__qualname__) for name, cls in _MODALITIES.items()))
+            settings = (jax.config.jax_enable_x64, os.environ.get("JAXTRACK_VIEW_SUBDIVISIONS"))
+            return _dumps((self.qualname, _environment(), settings, registry, treedef, is_dynamic, static, avals))
+        except Exception:  # noqa: BLE001  (not picklable, or code the signature cannot see: no disk cache for it)
             return None
 
     def digest(self, *args, **kwargs) -> str | None:

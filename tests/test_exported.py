@@ -15,12 +15,16 @@ import pytest
 from jaxtrack import _exported
 from jaxtrack._exported import enable_exported_cache, persistent_jit
 
+KNOWN_CODE = _exported._KNOWN_CODE
+
 
 @pytest.fixture
 def folder(tmp_path, monkeypatch):
     """The exported cache on, in a fresh folder, for this test only (the suite runs with it off)."""
     monkeypatch.delenv("JAXTRACK_EXPORT_CACHE", raising=False)
     monkeypatch.setattr(_exported, "_FOLDER", [None])
+    # This module's classes count as known code here (the signature cannot see test code change, nor a user's).
+    monkeypatch.setattr(_exported, "_KNOWN_CODE", (*KNOWN_CODE, __name__.split(".")[0]))
     return enable_exported_cache(tmp_path / "exported")
 
 
@@ -107,6 +111,35 @@ def test_what_cannot_be_pickled_or_is_traced_runs_filter_jit(folder):
     grad = jax.grad(lambda x: f(m, x)[1])(jnp.ones(3))
     assert np.allclose(np.asarray(grad), 4 * np.arange(3.0) ** 2)
     assert f.exported == 0 and _files(folder) == []
+
+
+class UserCode(eqx.Module):
+    """Stands for a user's modality: its code is outside jaxtrack, and could change under the same name."""
+
+    weights: jax.Array
+
+    def __call__(self, x):
+        return self.weights * x
+
+
+def test_user_code_in_the_signature_or_the_registry_is_not_kept(folder, monkeypatch):
+    from jaxtrack.modality import _registry
+
+    monkeypatch.setattr(_exported, "_KNOWN_CODE", KNOWN_CODE)  # as outside the tests: this module is user code
+    f = persistent_jit(lambda m, x: m(x))
+    assert UserCode.__module__.split(".")[0] not in _exported._KNOWN_CODE
+    assert float(f(UserCode(jnp.asarray(2.0)), jnp.asarray(3.0))) == 6.0
+    assert f.digest(UserCode(jnp.asarray(2.0)), jnp.asarray(3.0)) is None and _files(folder) == []
+    g = persistent_jit(model)
+    m, x = Scaled(jnp.arange(3.0), 2), jnp.ones(3)
+    assert g.digest(m, x) is None  # Scaled is this module's
+    monkeypatch.setattr(_exported, "_KNOWN_CODE", (*KNOWN_CODE, __name__.split(".")[0]))
+    assert g.digest(m, x) is not None
+    notebook_cue = type("NotebookCue", (), {"__module__": "__main__"})  # a modality registered from a notebook
+    monkeypatch.setitem(_registry._MODALITIES, "user-cue", notebook_cue)
+    assert g.digest(m, x) is None
+    g(m, x)
+    assert g.exported == 0 and _files(folder) == []
 
 
 def test_off_without_a_folder_and_a_damaged_file_is_replaced(folder, monkeypatch):
