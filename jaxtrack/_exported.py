@@ -134,6 +134,31 @@ def _environment() -> tuple:
     return digest.hexdigest(), tuple(versions)
 
 
+@functools.cache
+def _environment_tag() -> str:
+    """8 hex digits of `_environment()`: the second part of a program file's name."""
+    return hashlib.sha256(repr(_environment()).encode()).hexdigest()[:8]
+
+
+# Files of the same function written by another jaxtrack source or library version are removed once they are this
+# old (they can never be loaded by this version; a day's grace keeps two checkouts used in turn from evicting each
+# other's programs, and bounds what a day of edits leaves behind).
+STALE_AFTER_S = 86400.0
+
+
+def _remove_stale(written: pathlib.Path) -> None:
+    import time
+
+    name, tag, _ = written.name.rsplit("-", 2)
+    for path in written.parent.glob(f"{name}-*-*.jaxexport"):
+        try:
+            other_name, other_tag, _ = path.name.rsplit("-", 2)
+            if other_name == name and other_tag != tag and time.time() - path.stat().st_mtime > STALE_AFTER_S:
+                path.unlink()
+        except (OSError, ValueError):  # removed by another process meanwhile, or a name of another form
+            continue
+
+
 class _Entry:
     """One signature's program: the jitted call of the exported module and how to rebuild the output tree."""
 
@@ -213,8 +238,8 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
             return None
 
     def digest(self, *args, **kwargs) -> str | None:
-        """The hex digest that names these arguments' program on disk (the file `<name>-<digest>.jaxexport`), or None
-        when its signature cannot be pickled (such calls run `eqx.filter_jit`)."""
+        """The hex digest that names these arguments' program on disk (the file `<name>-<environment>-<digest>.jaxexport`),
+        or None when it has no signature kept on disk (such calls run `eqx.filter_jit`)."""
         leaves, treedef = jax.tree_util.tree_flatten((args, kwargs))
         is_dynamic = tuple(eqx.is_array(x) for x in leaves)
         static = tuple(x for x, d in zip(leaves, is_dynamic) if not d)
@@ -226,7 +251,7 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
         signature = self._signature(treedef, is_dynamic, static, avals)
         if signature is None:
             return _PLAIN
-        path = folder / f"{self.name}-{hashlib.sha256(signature).hexdigest()[:40]}.jaxexport"
+        path = folder / f"{self.name}-{_environment_tag()}-{hashlib.sha256(signature).hexdigest()[:40]}.jaxexport"
         entry = self._load(path, signature) if path.is_file() else None
         if entry is not None:
             self.loaded += 1
@@ -269,6 +294,7 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
             temporary = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}")
             temporary.write_bytes(data)
             os.replace(temporary, path)
+            _remove_stale(path)
         except Exception as error:  # noqa: BLE001  (no flatbuffers, a read-only folder: run from memory)
             warnings.warn(f"jaxtrack: the traced {self.name} could not be kept in {path.parent} ({type(error).__name__}: "
                           f"{error}); a new process traces it again", RuntimeWarning, stacklevel=3)

@@ -142,6 +142,22 @@ def test_user_code_in_the_signature_or_the_registry_is_not_kept(folder, monkeypa
     assert g.exported == 0 and _files(folder) == []
 
 
+def test_programs_of_other_versions_are_removed_after_a_day(folder):
+    stale, recent, other_function = (folder / "model-0000aaaa-1234.jaxexport", folder / "model-0000bbbb-1234.jaxexport",
+                                     folder / "other-0000cccc-1234.jaxexport")
+    for path in (stale, recent, other_function):
+        path.write_bytes(b"x")
+    day = _exported.STALE_AFTER_S
+    os.utime(stale, (os.path.getatime(stale) - 2 * day, os.path.getmtime(stale) - 2 * day))
+    os.utime(other_function, (os.path.getatime(stale) - 2 * day, os.path.getmtime(stale) - 2 * day))
+    f = persistent_jit(model)
+    f(Scaled(jnp.arange(3.0), 2), jnp.ones(3))
+    kept = _files(folder)
+    assert stale.name not in kept and recent.name in kept and other_function.name in kept
+    (written,) = [name for name in kept if name.startswith(f"model-{_exported._environment_tag()}-")]
+    assert written.endswith(f"-{f.digest(Scaled(jnp.arange(3.0), 2), jnp.ones(3))}.jaxexport")
+
+
 def test_off_without_a_folder_and_a_damaged_file_is_replaced(folder, monkeypatch):
     f = persistent_jit(model)
     m, x = Scaled(jnp.arange(3.0), 2), jnp.ones(3)
