@@ -638,7 +638,7 @@ def _tracking_summary(run, seq, cues, csv, jsonl, recorder) -> None:
           f"cues {'+'.join(cues)})")
     line = f"time: first frame (set-up) {seconds[0]:.1f} s"
     if compiled:
-        line += (f"; {len(compiled)} step(s) compiling a new crop size class "
+        line += (f"; {len(compiled)} step(s) preparing a new crop size class (compile, or load from the cache) "
                  f"({', '.join('x'.join(map(str, c)) for c in sorted(seen))}): {', '.join(f'{t:.1f}' for t in compiled)} s")
     if steady:
         med = float(np.median(steady))
@@ -1061,7 +1061,7 @@ def build_parser() -> argparse.ArgumentParser:
                       "holds sequence/, results.csv, results.frames.jsonl and overlay.mp4")
     demo.add_argument("--cues", type=_cue_list, default=CUE_CHOICES, help="cues to track with (default region,flow,sift)")
     demo.add_argument("--seed", type=_number(int, 0), default=None, help="random seed (default 3; 0 with --solver-only)")
-    demo.add_argument("--no-cache", action="store_true", help="do not use the on-disk compilation cache")
+    demo.add_argument("--no-cache", action="store_true", help="do not use the on-disk caches of compiled and traced programs ($JAXTRACK_CACHE_DIR)")
     demo.add_argument("--quiet", action="store_true", help="no progress bars")
     solver = demo.add_argument_group("pose-solver demo (--solver-only)")
     solver.add_argument("--solver-only", action="store_true",
@@ -1134,7 +1134,7 @@ def build_parser() -> argparse.ArgumentParser:
                        help="the refinement's pose prior: relative stiffnesses (rotation, translation), optionally "
                        "absolute ones and F = 1 to pull toward each round's start (M3T) instead of the prediction "
                        "(default: jaxtrack.track.DEFAULT_POSE_PRIOR)")
-    track.add_argument("--no-cache", action="store_true", help="do not use the on-disk compilation cache")
+    track.add_argument("--no-cache", action="store_true", help="do not use the on-disk caches of compiled and traced programs ($JAXTRACK_CACHE_DIR)")
     track.add_argument("--quiet", action="store_true", help="no progress bar")
     track.set_defaults(func=_cmd_track)
 
@@ -1180,7 +1180,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--recover", action="store_true", help="as jaxtrack track")
     bench.add_argument("--max-frames", dest="max_frames", metavar="N", type=_number(int, 2),
                        help="track only the first N frames of each sequence (after the frame step)")
-    bench.add_argument("--no-cache", action="store_true", help="do not use the on-disk compilation cache")
+    bench.add_argument("--no-cache", action="store_true", help="do not use the on-disk caches of compiled and traced programs ($JAXTRACK_CACHE_DIR)")
     bench.add_argument("--quiet", action="store_true", help="no progress bar")
     bench.set_defaults(func=_cmd_bench)
 
@@ -1282,7 +1282,7 @@ def build_parser() -> argparse.ArgumentParser:
                       default=cfg.median_every_warp, help="median after every warp instead of after every pyramid level")
     flow.add_argument("--sigma", type=_number(float, 0), default=cfg.presmooth_sigma, help=f"pre-smoothing σ in px (default {cfg.presmooth_sigma})")
     flow.add_argument("--grey", action="store_true", help="convert colour frames to grey first")
-    flow.add_argument("--no-cache", action="store_true", help="do not use the on-disk compilation cache")
+    flow.add_argument("--no-cache", action="store_true", help="do not use the on-disk caches of compiled and traced programs ($JAXTRACK_CACHE_DIR)")
     flow.set_defaults(func=_cmd_flow)
     return parser
 
