@@ -10,12 +10,15 @@ cache gives the executable.
 
 A signature is what decides the program: the function, the arguments' tree structure with its static leaves
 (everything that is not an array: configs, raster plans, crop shapes), the arrays' shapes and dtypes, the source of
-the `jaxtrack` package, the versions of jax, jaxlib, equinox, optimistix, lineax and numpy, the registered modalities,
-jax's x64 setting and $JAXTRACK_VIEW_SUBDIVISIONS. It is pickled and hashed. A signature that cannot be pickled (a
-lambda in a static field), that refers to a class or function outside those packages (its code could change under
-the same name: a user's modality, also one registered by name), or whose pickle is not reproducible runs
-`eqx.filter_jit` as before (a miss, never a wrong program). Calls under a transformation (vmap, grad: tracers among
-the arguments) run `eqx.filter_jit` too.
+the `jaxtrack` package as imported (hashed at import), the versions of jax, jaxlib, equinox, optimistix, lineax,
+numpy and ml_dtypes, the backend, the registered modalities, the jax settings that change a trace (x64, matmul
+precision, dtype and rank promotion, NaN/inf checks, PRNG) and $JAXTRACK_VIEW_SUBDIVISIONS. It is pickled and
+hashed. A signature that cannot be pickled (a lambda in a static field) or that refers to a class or function
+outside those packages (its code could change under the same name: a user's modality, also one registered by
+name) runs `eqx.filter_jit` as before. So do calls under a transformation (vmap, grad: tracers among the
+arguments), calls with weakly typed arrays (an exported program's inputs and outputs are strongly typed), and an
+entry whose program fails to run (then for good, in this process). A pickle that differs between processes only
+misses: the program is exported again under another name.
 
 Off unless a folder is set: `enable_compilation_cache` sets it (`jaxtrack track`, `bench`, the experiments);
 `JAXTRACK_EXPORT_CACHE=0` turns it off. Serialisation needs the `flatbuffers` package (a dependency).
@@ -29,6 +32,7 @@ import io
 import os
 import pathlib
 import pickle
+import tempfile
 import threading
 import types
 import warnings
@@ -114,10 +118,9 @@ def _canonical(dtype, x64: bool | None = None) -> str:
     return str(jax.dtypes.canonicalize_dtype(dtype))
 
 
-@functools.cache
-def _environment() -> tuple:
-    """What, besides the signature, decides a traced program: jaxtrack's source and the versions of the libraries that
-    trace it (computed once per process)."""
+def _source_environment() -> tuple:
+    """jaxtrack's source (every .py file under the package, as on disk now) and the versions of the libraries that
+    trace it."""
     import importlib.metadata
 
     digest = hashlib.sha256()
@@ -126,7 +129,7 @@ def _environment() -> tuple:
         digest.update(str(path.relative_to(root)).encode())
         digest.update(path.read_bytes())
     versions = []
-    for name in ("jax", "jaxlib", "equinox", "optimistix", "lineax", "numpy"):
+    for name in ("jax", "jaxlib", "equinox", "optimistix", "lineax", "numpy", "ml_dtypes"):
         try:
             versions.append((name, importlib.metadata.version(name)))
         except importlib.metadata.PackageNotFoundError:
@@ -134,10 +137,32 @@ def _environment() -> tuple:
     return digest.hexdigest(), tuple(versions)
 
 
+# Hashed once, at import: the code this process runs. (Hashed lazily, a file edited between the import and the
+# first call would name the old program with the new source's hash.) `_export` hashes again before it writes.
+_ENVIRONMENT = _source_environment()
+
+
+def _environment() -> tuple:
+    """What, besides the signature, decides a traced program: jaxtrack's source as imported and library versions."""
+    return _ENVIRONMENT
+
+
+# The jax settings that change what a trace produces (jax's own jit cache keys on them too).
+_TRACE_SETTINGS = ("jax_enable_x64", "jax_default_matmul_precision", "jax_numpy_dtype_promotion", "jax_numpy_rank_promotion",
+                   "jax_debug_nans", "jax_debug_infs", "jax_default_prng_impl", "jax_threefry_partitionable")
+
+
+def _settings() -> tuple:
+    """The trace settings now (thread-local overrides such as `jax.default_matmul_precision` included), the backend and
+    $JAXTRACK_VIEW_SUBDIVISIONS (read by the line modality when a configuration builds it)."""
+    return (tuple(str(getattr(jax.config, name, None)) for name in _TRACE_SETTINGS), jax.default_backend(),
+            os.environ.get("JAXTRACK_VIEW_SUBDIVISIONS"))
+
+
 @functools.cache
 def _environment_tag() -> str:
     """8 hex digits of `_environment()`: the second part of a program file's name."""
-    return hashlib.sha256(repr(_environment()).encode()).hexdigest()[:8]
+    return hashlib.sha256(repr(_ENVIRONMENT).encode()).hexdigest()[:8]
 
 
 # Files of the same function written by another jaxtrack source or library version are removed once they are this
@@ -157,16 +182,30 @@ def _remove_stale(written: pathlib.Path) -> None:
                 path.unlink()
         except (OSError, ValueError):  # removed by another process meanwhile, or a name of another form
             continue
+    for path in written.parent.glob(".*.jaxexport.*"):  # temporary files of writers that died
+        try:
+            if time.time() - path.stat().st_mtime > STALE_AFTER_S:
+                path.unlink()
+        except OSError:
+            continue
+
+
+def _call_device(dynamic):
+    """The device a call runs on: that of its first committed array (as jit places it), else the default device."""
+    for x in dynamic:
+        if getattr(x, "committed", False):
+            return next(iter(x.devices()))
+    return jax.config.jax_default_device or jax.devices()[0]
 
 
 class _Entry:
     """One signature's program: the jitted call of the exported module and how to rebuild the output tree."""
 
-    def __init__(self, exported, out_treedef, out_is_dynamic, out_static):
-        # One placement for every argument: jit would otherwise lower (and compile) the call again when some inputs
-        # are committed to the device (outputs of the previous call) and others not.
-        device = jax.sharding.SingleDeviceSharding(jax.devices()[0])
-        self.call = jax.jit(exported.call, in_shardings=device, out_shardings=device)
+    def __init__(self, exported, out_treedef, out_is_dynamic, out_static, device):
+        # One placement for every argument (the call's device): jit would otherwise lower (and compile) the call again
+        # when some inputs are committed to the device (outputs of the previous call) and others not.
+        placement = jax.sharding.SingleDeviceSharding(device)
+        self.call = jax.jit(exported.call, in_shardings=placement, out_shardings=placement)
         self.out_treedef, self.out_is_dynamic, self.out_static = out_treedef, out_is_dynamic, out_static
 
     def __call__(self, dynamic):
@@ -186,6 +225,7 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
     """
 
     def __init__(self, fn):
+        functools.update_wrapper(self, fn)  # first: it copies fn.__dict__ onto this object
         self.fn = fn
         self.name = getattr(fn, "__name__", "fn").strip("_") or "fn"
         self.qualname = f"{getattr(fn, '__module__', '?')}.{getattr(fn, '__qualname__', self.name)}"
@@ -194,7 +234,6 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
         self.loaded = 0
         self.exported = 0
         self._lock = threading.Lock()
-        functools.update_wrapper(self, fn)
 
     def __call__(self, *args, **kwargs):
         folder = _FOLDER[0]
@@ -203,16 +242,15 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
         leaves, treedef = jax.tree_util.tree_flatten((args, kwargs))
         is_dynamic = tuple(eqx.is_array(x) for x in leaves)
         dynamic = [x for x, d in zip(leaves, is_dynamic) if d]
-        if any(isinstance(x, jax.core.Tracer) for x in dynamic):  # under vmap / grad / an outer jit
+        # Under vmap / grad / an outer jit (tracers), or with weakly typed arrays (an exported program takes and gives
+        # strongly typed ones, which would promote differently than eqx.filter_jit): the plain path.
+        if any(isinstance(x, jax.core.Tracer) or getattr(x, "weak_type", False) for x in dynamic):
             return self.plain(*args, **kwargs)
         static = tuple(x for x, d in zip(leaves, is_dynamic) if not d)
-        # Weak types are not part of the signature: outputs of an exported program come back strongly typed, and a
-        # state that went through one step must not make a second program.
         avals = tuple((x.shape, _canonical(x.dtype, jax.config.jax_enable_x64)) for x in dynamic)
-        if any(getattr(x, "weak_type", False) for x in dynamic):  # the exported program's call takes them strongly typed
-            dynamic = [jax.lax.convert_element_type(x, x.dtype) if getattr(x, "weak_type", False) else x for x in dynamic]
+        device = _call_device(dynamic)
         try:
-            key = (treedef, is_dynamic, static, avals)
+            key = (treedef, is_dynamic, static, avals, _settings(), device)
             entry = self.memory.get(key)
         except TypeError:  # an unhashable static leaf: eqx.filter_jit says what it needs
             return self.plain(*args, **kwargs)
@@ -220,10 +258,16 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
             with self._lock:
                 entry = self.memory.get(key)
                 if entry is None:
-                    entry = self.memory[key] = self._entry(folder, treedef, is_dynamic, static, avals)
+                    entry = self.memory[key] = self._entry(folder, treedef, is_dynamic, static, avals, device)
         if entry is _PLAIN:
             return self.plain(*args, **kwargs)
-        return entry(dynamic)
+        try:
+            return entry(dynamic)
+        except Exception as error:  # noqa: BLE001  (e.g. a program of another platform: the plain path, for good)
+            self.memory[key] = _PLAIN
+            warnings.warn(f"jaxtrack: the kept program of {self.qualname} failed ({type(error).__name__}: {error}); "
+                          "traced instead", RuntimeWarning, stacklevel=2)
+            return self.plain(*args, **kwargs)
 
     def _signature(self, treedef, is_dynamic, static, avals) -> bytes | None:
         from .modality._registry import _MODALITIES
@@ -232,8 +276,7 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
             for cls in _MODALITIES.values():  # a configuration names its modalities; the classes are looked up when traced
                 _check_known(cls)
             registry = tuple(sorted((name, cls.__module__, cls.__qualname__) for name, cls in _MODALITIES.items()))
-            settings = (jax.config.jax_enable_x64, os.environ.get("JAXTRACK_VIEW_SUBDIVISIONS"))
-            return _dumps((self.qualname, _environment(), settings, registry, treedef, is_dynamic, static, avals))
+            return _dumps((self.qualname, _environment(), _settings(), registry, treedef, is_dynamic, static, avals))
         except Exception:  # noqa: BLE001  (not picklable, or code the signature cannot see: no disk cache for it)
             return None
 
@@ -247,30 +290,35 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
         signature = self._signature(treedef, is_dynamic, static, avals)
         return None if signature is None else hashlib.sha256(signature).hexdigest()[:40]
 
-    def _entry(self, folder: pathlib.Path, treedef, is_dynamic, static, avals):
+    def _entry(self, folder: pathlib.Path, treedef, is_dynamic, static, avals, device):
         signature = self._signature(treedef, is_dynamic, static, avals)
         if signature is None:
             return _PLAIN
         path = folder / f"{self.name}-{_environment_tag()}-{hashlib.sha256(signature).hexdigest()[:40]}.jaxexport"
-        entry = self._load(path, signature) if path.is_file() else None
+        entry = self._load(path, signature, device)
         if entry is not None:
             self.loaded += 1
             return entry
-        return self._export(path, signature, treedef, is_dynamic, static, avals)
+        return self._export(path, signature, treedef, is_dynamic, static, avals, device)
 
     @staticmethod
-    def _load(path: pathlib.Path, signature: bytes) -> _Entry | None:
-        """The program in `path`, or None when the file is damaged or holds another signature (it is exported again and
-        replaced)."""
+    def _load(path: pathlib.Path, signature: bytes, device) -> _Entry | None:
+        """The program in `path`, or None when there is none, or the file is damaged or holds another signature (it is
+        exported again and replaced). A file loaded is touched: `STALE_AFTER_S` counts from its last use."""
         try:
             stored = _loads(path.read_bytes())
             if stored["signature"] != signature:
                 return None
-            return _Entry(jax.export.deserialize(stored["exported"]), *stored["out"])
-        except Exception:  # noqa: BLE001  (truncated, foreign, or written by another jax)
+            entry = _Entry(jax.export.deserialize(stored["exported"]), *stored["out"], device)
+        except Exception:  # noqa: BLE001  (missing, truncated, foreign, or written by another jax)
             return None
+        try:
+            os.utime(path)
+        except OSError:
+            pass
+        return entry
 
-    def _export(self, path: pathlib.Path, signature: bytes, treedef, is_dynamic, static, avals):
+    def _export(self, path: pathlib.Path, signature: bytes, treedef, is_dynamic, static, avals, device):
         out_structure = []
 
         def flat(*dynamic_leaves):
@@ -287,12 +335,15 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
             warnings.warn(f"jaxtrack: {self.qualname} cannot be exported ({type(error).__name__}: {error}); "
                           "it is traced in every process", RuntimeWarning, stacklevel=3)
             return _PLAIN
-        entry = _Entry(exported, *out_structure[-1])
+        entry = _Entry(exported, *out_structure[-1], device)
         self.exported += 1
+        if _source_environment() != _ENVIRONMENT:  # the source changed on disk since the import: this is not its program
+            return entry
         try:
             data = _dumps({"signature": signature, "exported": exported.serialize(), "out": out_structure[-1]})
-            temporary = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}")
-            temporary.write_bytes(data)
+            handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+            with os.fdopen(handle, "wb") as file:
+                file.write(data)
             os.replace(temporary, path)
             _remove_stale(path)
         except Exception as error:  # noqa: BLE001  (no flatbuffers, a read-only folder: run from memory)

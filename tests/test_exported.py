@@ -86,13 +86,36 @@ def test_every_static_or_shape_change_is_its_own_program(folder):
     assert float(outs[2][1]) == float(jnp.sum(5.0 * jnp.arange(3.0) ** 2))
 
 
-def test_weak_types_do_not_make_a_second_program(folder):
-    f = persistent_jit(lambda a, b: (a * b, a + 1))
-    weak = jnp.asarray(2.0)  # weakly typed
+def test_weak_types_run_filter_jit_and_trace_settings_are_part_of_the_signature(folder):
+    f = persistent_jit(lambda a, b: a * b)
+    weak = jnp.asarray(0.1)  # weakly typed: promotes to the float32 of b, as under eqx.filter_jit
     assert jax.typeof(weak).weak_type
-    out = f(weak, jnp.ones(2))
-    out = f(out[1], jnp.ones(2))  # strongly typed now
-    assert f.exported == 1 and len(f.memory) == 1 and float(out[0][0]) == 3.0
+    out = f(weak, jnp.ones(2, jnp.float32))
+    assert out.dtype == eqx.filter_jit(lambda a, b: a * b)(weak, jnp.ones(2, jnp.float32)).dtype == jnp.float32
+    assert f.exported == 0 and _files(folder) == []
+    strong = jnp.asarray(0.1, jnp.float32)
+    assert f(strong, jnp.ones(2, jnp.float32)).dtype == jnp.float32 and f.exported == 1
+    g = persistent_jit(model)
+    m, x = Scaled(jnp.arange(3.0), 2), jnp.ones(3)
+    plain_digest = g.digest(m, x)
+    with jax.default_matmul_precision("highest"):  # fixed in the program when traced
+        assert g.digest(m, x) != plain_digest
+    assert g.digest(m, x) == plain_digest
+
+
+def test_a_program_that_fails_to_run_falls_back_for_good(folder, monkeypatch):
+    f = persistent_jit(model)
+    m, x = Scaled(jnp.arange(3.0), 2), jnp.ones(3)
+    expected = float(f(m, x)[1])
+
+    def broken(self, dynamic):
+        raise ValueError("exported for platforms ('cpu',) but it is used on ('cuda',)")
+
+    monkeypatch.setattr(_exported._Entry, "__call__", broken)
+    with pytest.warns(RuntimeWarning, match="traced instead"):
+        assert float(f(m, x)[1]) == expected
+    assert float(f(m, x)[1]) == expected  # the plain path now, without a warning
+    assert list(f.memory.values()) == [_exported._PLAIN]
 
 
 class WithFunction(eqx.Module):
