@@ -272,13 +272,24 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
     def _signature(self, treedef, is_dynamic, static, avals) -> bytes | None:
         from .modality._registry import _MODALITIES
 
-        try:
-            for cls in _MODALITIES.values():  # a configuration names its modalities; the classes are looked up when traced
+        # A configuration names its modalities and the traced code looks the classes up: the registry's entries of
+        # known code are part of the signature; a signature that names a modality registered from other code (its
+        # name among the pickled strings; a false match only costs the disk cache) is not kept.
+        known, unknown = [], []
+        for name, cls in _MODALITIES.items():
+            try:
                 _check_known(cls)
-            registry = tuple(sorted((name, cls.__module__, cls.__qualname__) for name, cls in _MODALITIES.items()))
-            return _dumps((self.qualname, _environment(), _settings(), registry, treedef, is_dynamic, static, avals))
+                known.append((name, cls.__module__, cls.__qualname__))
+            except _UnknownCode:
+                unknown.append(name)
+        try:
+            signature = _dumps((self.qualname, _environment(), _settings(), tuple(sorted(known)), treedef, is_dynamic,
+                                static, avals))
         except Exception:  # noqa: BLE001  (not picklable, or code the signature cannot see: no disk cache for it)
             return None
+        if any(name.encode() in signature for name in unknown):
+            return None
+        return signature
 
     def digest(self, *args, **kwargs) -> str | None:
         """The hex digest that names these arguments' program on disk (the file `<name>-<environment>-<digest>.jaxexport`),

@@ -160,8 +160,10 @@ def test_user_code_in_the_signature_or_the_registry_is_not_kept(folder, monkeypa
     assert g.digest(m, x) is not None
     notebook_cue = type("NotebookCue", (), {"__module__": "__main__"})  # a modality registered from a notebook
     monkeypatch.setitem(_registry._MODALITIES, "user-cue", notebook_cue)
-    assert g.digest(m, x) is None
-    g(m, x)
+    assert g.digest(m, x) is not None  # registered, but not named by these arguments
+    named = Scaled(jnp.arange(3.0), 2, name="user-cue")  # a configuration that names it
+    assert g.digest(named, x) is None
+    g(named, x)
     assert g.exported == 0 and _files(folder) == []
 
 
