@@ -34,6 +34,7 @@ import pathlib
 import pickle
 import tempfile
 import threading
+import time
 import types
 import warnings
 
@@ -56,11 +57,6 @@ def enable_exported_cache(folder: str | os.PathLike | None) -> pathlib.Path | No
     return path
 
 
-def exported_cache_folder() -> pathlib.Path | None:
-    """The folder of exported programs, or None when the cache is off."""
-    return _FOLDER[0]
-
-
 # --- pickling eqx treedefs: equinox marks a module's array fields with a sentinel in the tree's aux data ---------
 class _Probe(eqx.Module):
     a: object
@@ -79,10 +75,8 @@ class _UnknownCode(Exception):
     """The signature refers to code whose changes it cannot see."""
 
 
-def _check_known(obj) -> None:
-    module = getattr(obj, "__module__", None) or ""
-    if module.split(".")[0] not in _KNOWN_CODE:
-        raise _UnknownCode(f"{module}.{getattr(obj, '__qualname__', obj)}")
+def _is_known(obj) -> bool:
+    return (getattr(obj, "__module__", None) or "").split(".")[0] in _KNOWN_CODE
 
 
 class _Pickler(pickle.Pickler):
@@ -90,8 +84,9 @@ class _Pickler(pickle.Pickler):
         return "eqx-missing" if obj is _MISSING else None
 
     def reducer_override(self, obj):
-        if isinstance(obj, type | types.FunctionType | types.BuiltinFunctionType | types.MethodType):
-            _check_known(obj)  # pickled by reference: its code is not in the bytes
+        # Pickled by reference, its code is not in the bytes: only code the signature otherwise covers.
+        if isinstance(obj, type | types.FunctionType | types.BuiltinFunctionType | types.MethodType) and not _is_known(obj):
+            raise _UnknownCode(f"{obj.__module__}.{getattr(obj, '__qualname__', obj)}")
         return NotImplemented
 
 
@@ -142,11 +137,6 @@ def _source_environment() -> tuple:
 _ENVIRONMENT = _source_environment()
 
 
-def _environment() -> tuple:
-    """What, besides the signature, decides a traced program: jaxtrack's source as imported and library versions."""
-    return _ENVIRONMENT
-
-
 # The jax settings that change what a trace produces (jax's own jit cache keys on them too).
 _TRACE_SETTINGS = ("jax_enable_x64", "jax_default_matmul_precision", "jax_numpy_dtype_promotion", "jax_numpy_rank_promotion",
                    "jax_debug_nans", "jax_debug_infs", "jax_default_prng_impl", "jax_threefry_partitionable")
@@ -161,7 +151,7 @@ def _settings() -> tuple:
 
 @functools.cache
 def _environment_tag() -> str:
-    """8 hex digits of `_environment()`: the second part of a program file's name."""
+    """8 hex digits of `_ENVIRONMENT`: the second part of a program file's name."""
     return hashlib.sha256(repr(_ENVIRONMENT).encode()).hexdigest()[:8]
 
 
@@ -172,8 +162,6 @@ STALE_AFTER_S = 86400.0
 
 
 def _remove_stale(written: pathlib.Path) -> None:
-    import time
-
     name, tag, _ = written.name.rsplit("-", 2)
     for path in written.parent.glob(f"{name}-*-*.jaxexport"):
         try:
@@ -196,6 +184,17 @@ def _call_device(dynamic):
         if getattr(x, "committed", False):
             return next(iter(x.devices()))
     return jax.config.jax_default_device or jax.devices()[0]
+
+
+def _split(args, kwargs):
+    """(treedef, is_dynamic, dynamic, static, avals) of a call's arguments: arrays traced, every other leaf static (as
+    `eqx.filter_jit`); avals = (shape, canonical dtype) of the arrays."""
+    leaves, treedef = jax.tree_util.tree_flatten((args, kwargs))
+    is_dynamic = tuple(eqx.is_array(x) for x in leaves)
+    dynamic = [x for x, d in zip(leaves, is_dynamic) if d]
+    static = tuple(x for x, d in zip(leaves, is_dynamic) if not d)
+    x64 = jax.config.jax_enable_x64
+    return treedef, is_dynamic, dynamic, static, tuple((x.shape, _canonical(x.dtype, x64)) for x in dynamic)
 
 
 class _Entry:
@@ -239,15 +238,11 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
         folder = _FOLDER[0]
         if folder is None:
             return self.plain(*args, **kwargs)
-        leaves, treedef = jax.tree_util.tree_flatten((args, kwargs))
-        is_dynamic = tuple(eqx.is_array(x) for x in leaves)
-        dynamic = [x for x, d in zip(leaves, is_dynamic) if d]
+        treedef, is_dynamic, dynamic, static, avals = _split(args, kwargs)
         # Under vmap / grad / an outer jit (tracers), or with weakly typed arrays (an exported program takes and gives
         # strongly typed ones, which would promote differently than eqx.filter_jit): the plain path.
         if any(isinstance(x, jax.core.Tracer) or getattr(x, "weak_type", False) for x in dynamic):
             return self.plain(*args, **kwargs)
-        static = tuple(x for x, d in zip(leaves, is_dynamic) if not d)
-        avals = tuple((x.shape, _canonical(x.dtype, jax.config.jax_enable_x64)) for x in dynamic)
         device = _call_device(dynamic)
         try:
             key = (treedef, is_dynamic, static, avals, _settings(), device)
@@ -275,16 +270,10 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
         # A configuration names its modalities and the traced code looks the classes up: the registry's entries of
         # known code are part of the signature; a signature that names a modality registered from other code (its
         # name among the pickled strings; a false match only costs the disk cache) is not kept.
-        known, unknown = [], []
-        for name, cls in _MODALITIES.items():
-            try:
-                _check_known(cls)
-                known.append((name, cls.__module__, cls.__qualname__))
-            except _UnknownCode:
-                unknown.append(name)
+        known = tuple(sorted((name, cls.__module__, cls.__qualname__) for name, cls in _MODALITIES.items() if _is_known(cls)))
+        unknown = [name for name, cls in _MODALITIES.items() if not _is_known(cls)]
         try:
-            signature = _dumps((self.qualname, _environment(), _settings(), tuple(sorted(known)), treedef, is_dynamic,
-                                static, avals))
+            signature = _dumps((self.qualname, _ENVIRONMENT, _settings(), known, treedef, is_dynamic, static, avals))
         except Exception:  # noqa: BLE001  (not picklable, or code the signature cannot see: no disk cache for it)
             return None
         if any(name.encode() in signature for name in unknown):
@@ -294,10 +283,7 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
     def digest(self, *args, **kwargs) -> str | None:
         """The hex digest that names these arguments' program on disk (the file `<name>-<environment>-<digest>.jaxexport`),
         or None when it has no signature kept on disk (such calls run `eqx.filter_jit`)."""
-        leaves, treedef = jax.tree_util.tree_flatten((args, kwargs))
-        is_dynamic = tuple(eqx.is_array(x) for x in leaves)
-        static = tuple(x for x, d in zip(leaves, is_dynamic) if not d)
-        avals = tuple((x.shape, _canonical(x.dtype, jax.config.jax_enable_x64)) for x, d in zip(leaves, is_dynamic) if d)
+        treedef, is_dynamic, _, static, avals = _split(args, kwargs)
         signature = self._signature(treedef, is_dynamic, static, avals)
         return None if signature is None else hashlib.sha256(signature).hexdigest()[:40]
 
