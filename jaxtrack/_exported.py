@@ -234,26 +234,32 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
         self.exported = 0
         self._lock = threading.Lock()
 
-    def __call__(self, *args, **kwargs):
+    def _resolve(self, args, kwargs):
+        """(entry, dynamic leaves, key) of a call: entry an `_Entry` (made or loaded on first use), or `_PLAIN` when
+        the call runs `eqx.filter_jit` (no folder, tracers, weak types, unhashable or unkept signatures)."""
         folder = _FOLDER[0]
         if folder is None:
-            return self.plain(*args, **kwargs)
+            return _PLAIN, None, None
         treedef, is_dynamic, dynamic, static, avals = _split(args, kwargs)
         # Under vmap / grad / an outer jit (tracers), or with weakly typed arrays (an exported program takes and gives
         # strongly typed ones, which would promote differently than eqx.filter_jit): the plain path.
         if any(isinstance(x, jax.core.Tracer) or getattr(x, "weak_type", False) for x in dynamic):
-            return self.plain(*args, **kwargs)
+            return _PLAIN, None, None
         device = _call_device(dynamic)
         try:
             key = (treedef, is_dynamic, static, avals, _settings(), device)
             entry = self.memory.get(key)
         except TypeError:  # an unhashable static leaf: eqx.filter_jit says what it needs
-            return self.plain(*args, **kwargs)
+            return _PLAIN, None, None
         if entry is None:
             with self._lock:
                 entry = self.memory.get(key)
                 if entry is None:
                     entry = self.memory[key] = self._entry(folder, treedef, is_dynamic, static, avals, device)
+        return entry, dynamic, key
+
+    def __call__(self, *args, **kwargs):
+        entry, dynamic, key = self._resolve(args, kwargs)
         if entry is _PLAIN:
             return self.plain(*args, **kwargs)
         try:
@@ -263,6 +269,12 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
             warnings.warn(f"jaxtrack: the kept program of {self.qualname} failed ({type(error).__name__}: {error}); "
                           "traced instead", RuntimeWarning, stacklevel=2)
             return self.plain(*args, **kwargs)
+
+    def dispatches_async(self, *args, **kwargs) -> bool:
+        """Whether a call with these arguments returns before its program has run (jax's asynchronous dispatch): a
+        kept program does; `eqx.filter_jit` waits for the result (to report runtime errors). Makes the call's entry
+        (traces or loads its program) when it has none yet, as the call would."""
+        return self._resolve(args, kwargs)[0] is not _PLAIN
 
     def _signature(self, treedef, is_dynamic, static, avals) -> bytes | None:
         from .modality._registry import _MODALITIES

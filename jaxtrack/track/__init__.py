@@ -31,12 +31,14 @@ from ._sequence import track_sequence as track_sequence
 from ._sequence import write_joint_results as write_joint_results
 from ._sequence import write_tracking_results as write_tracking_results
 from ._step import FrameResult as FrameResult
+from ._step import FrameStart as FrameStart
 from ._step import TrackerConfig as TrackerConfig
 from ._step import TrackerParams as TrackerParams
 from ._step import TrackerSetup as TrackerSetup
 from ._step import TrackerState as TrackerState
 from ._step import frame_context as frame_context
 from ._step import motion_correspondences as motion_correspondences
+from ._step import start_frame as start_frame
 from ._step import track_step as track_step
 from ._tracker import DEFAULT_POSE_PRIOR as DEFAULT_POSE_PRIOR
 from ._tracker import Tracker as Tracker

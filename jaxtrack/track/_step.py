@@ -5,7 +5,9 @@ one). For frames t → t+1 of C cameras sharing one state χ = (ξ, Θ):
 
 1. render the model at χ_t into each camera's crop (principal point shifted, static crop size); every
    modality starts its frame (`Modality.start`: the flow of the crop with r(x) of frame t as data
-   weight (eq. 6-8), the SIFT rows from the host's matches, the carried densities cropped);
+   weight (eq. 6-8), the SIFT rows from the host's matches, the carried densities cropped). The part that
+   needs nothing from the host is also a function of its own, `start_frame`: the tracker runs it while the
+   host detects SIFT keypoints and hands its output to `track_step(early=)`;
 2. prediction: one Gauss-Newton solve on the motion modalities' rows with the prediction weights of
    Section V (n_C → n_OF); the modalities check their rows against it (SIFT back-projection);
 3. refinement (`refine_rounds`): rounds of {one render per camera at the current pose, the rows of every
@@ -419,17 +421,22 @@ def paste_frames(full, part, offsets, scales=None):
     return jax.vmap(paste_window_scaled)(full, part, offsets, scales)
 
 
-def frame_context(setup: TrackerSetup, state: TrackerState, frames, offsets, crop_shape, scales=None) -> FrameContext:
+def frame_context(setup: TrackerSetup, state: TrackerState, frames, offsets, crop_shape, scales=None,
+                  early: FrameStart | None = None) -> FrameContext:
     """The step's `FrameContext`: crops of frames t and t+1, r(x) of t on the crop, the render at χ_t
-    (`scales`: (C,) full-frame pixels per crop pixel at the fixed working resolution, or None)."""
-    cams = crop_camera(setup.cameras, offsets, crop_shape, scales)
+    (`scales`: (C,) full-frame pixels per crop pixel at the fixed working resolution, or None). With `early`
+    (`start_frame`'s output for the same inputs) the crops and the render are taken from it, not made again."""
     dtype = state.T_world_root.dtype
     previous = state.images
-    if setup.config.uses_crop():  # cut (or resampled) from the frames as they are, then cast
-        crops, previous_crops, data_weight_crops = crop_frames((frames, previous, state.data_weight), offsets, crop_shape,
-                                                               scales, dtype)
-    else:  # whole frames (offsets 0, crop_shape = the frame): no copies
-        crops, previous_crops, data_weight_crops = (a.astype(dtype) for a in (frames, previous, state.data_weight))
+    if early is not None:
+        cams, crops, previous_crops, data_weight_crops = early.crop_cameras, early.crops, early.previous_crops, early.data_weight
+    else:
+        cams = crop_camera(setup.cameras, offsets, crop_shape, scales)
+        if setup.config.uses_crop():  # cut (or resampled) from the frames as they are, then cast
+            crops, previous_crops, data_weight_crops = crop_frames((frames, previous, state.data_weight), offsets,
+                                                                   crop_shape, scales, dtype)
+        else:  # whole frames (offsets 0, crop_shape = the frame): no copies
+            crops, previous_crops, data_weight_crops = (a.astype(dtype) for a in (frames, previous, state.data_weight))
     ctx = FrameContext(
         mesh=setup.mesh, model=setup.model, cameras=setup.cameras, crop_cameras=cams, offsets=offsets,
         frames=frames, crops=crops, previous=previous, previous_crops=previous_crops,
@@ -438,7 +445,8 @@ def frame_context(setup: TrackerSetup, state: TrackerState, frames, offsets, cro
     )
     if not any(m.needs_render_t for m in setup.config.modalities()):
         return ctx
-    return eqx.tree_at(lambda c: c.render_t, ctx, render_crops(ctx, ctx.pose_t), is_leaf=lambda x: x is None)
+    render_t = early.render_t if early is not None else render_crops(ctx, ctx.pose_t)
+    return eqx.tree_at(lambda c: c.render_t, ctx, render_t, is_leaf=lambda x: x is None)
 
 
 def modality_context(ctx, setup: TrackerSetup, index: int):
@@ -447,12 +455,50 @@ def modality_context(ctx, setup: TrackerSetup, index: int):
     return ctx if prepared is None else eqx.tree_at(lambda c: c.prepared, ctx, prepared, is_leaf=lambda x: x is None)
 
 
-def start_modalities(setup: TrackerSetup, state: TrackerState, frames, host, offsets, params: TrackerParams, crop_shape,
-                     scales=None):
-    """Step 1: the `FrameContext` and every modality's per-frame data. Returns (modalities, ctx, frame data)."""
-    modalities = setup.config.modalities()
+def reads_host(modality: Modality) -> bool:
+    """Whether a modality's `start` reads host inputs: its class overrides `Modality.host_inputs` (SIFT's matches).
+    The others can start their frame on the device while the host makes those inputs (`start_frame`)."""
+    return type(modality).host_inputs is not Modality.host_inputs
+
+
+class FrameStart(eqx.Module):
+    """What `start_frame` makes before the host inputs exist (the first part of step 1), for `track_step(early=)`.
+
+    Attributes:
+        crop_cameras: the C crop cameras; crops, previous_crops: (C, h, w, 3) frames t+1 and t in the crops;
+        data_weight: (C, h, w) r(x) of frame t in the crops; render_t: the model at χ_t in the crops (None when no
+        modality reads it); data: per configured modality its `start` output, None for those that read host inputs.
+    """
+
+    crop_cameras: Camera
+    crops: jax.Array
+    previous_crops: jax.Array
+    data_weight: jax.Array
+    render_t: object
+    data: tuple
+
+
+@eqx.debug.assert_max_traces(max_traces=None)  # counts traces (`eqx.debug.get_num_traces`), never fails
+def start_frame(setup: TrackerSetup, state: TrackerState, frames, offsets, params: TrackerParams, crop_shape,
+                scales=None) -> FrameStart:
+    """Step 1 without the host: the crops, the render at χ_t and the `start` of every modality that reads no host
+    inputs (the flow). Jittable. `Tracker.step` dispatches it before the host detects and matches SIFT keypoints,
+    so the device computes the flow while the host detects; `track_step(..., early=)` then finishes the frame.
+    Arguments as `track_step`'s."""
     ctx = frame_context(setup, state, frames, offsets, crop_shape, scales)
-    data = tuple(m.start(modality_context(ctx, setup, i), s, h, params)
+    data = tuple(None if reads_host(m) else m.start(modality_context(ctx, setup, i), s, None, params)
+                 for i, (m, s) in enumerate(zip(setup.config.modalities(), state.modalities)))
+    return FrameStart(ctx.crop_cameras, ctx.crops, ctx.previous_crops, ctx.data_weight, ctx.render_t, data)
+
+
+def start_modalities(setup: TrackerSetup, state: TrackerState, frames, host, offsets, params: TrackerParams, crop_shape,
+                     scales=None, early: FrameStart | None = None):
+    """Step 1: the `FrameContext` and every modality's per-frame data (with `early`: only the modalities that read
+    host inputs start here, the others' data come from it). Returns (modalities, ctx, frame data)."""
+    modalities = setup.config.modalities()
+    ctx = frame_context(setup, state, frames, offsets, crop_shape, scales, early)
+    data = tuple(early.data[i] if early is not None and not reads_host(m) else
+                 m.start(modality_context(ctx, setup, i), s, h, params)
                  for i, (m, s, h) in enumerate(zip(modalities, state.modalities, host)))
     return modalities, ctx, data
 
@@ -481,6 +527,7 @@ def track_step(
     params: TrackerParams,
     crop_shape: tuple[int, int],
     scales: jax.Array | None = None,
+    early: FrameStart | None = None,
 ) -> tuple[TrackerState, FrameResult]:
     """One frame t → t+1 (Section V). Jittable and pure; vmap over `params` sweeps cue weights.
 
@@ -495,6 +542,8 @@ def track_step(
         crop_shape: (h, w) the static crop size (a size class, or the fixed working resolution; shared by the cameras).
         scales: (C,) full-frame pixels per crop pixel when the crops are resampled to the working
             resolution (`TrackerConfig.working_shape`); None: crops cut at the native resolution.
+        early: `start_frame` of the same inputs (computed in its own program while the host made `host`), or None:
+            the whole step here. The result is the same either way.
 
     Returns:
         (new `TrackerState` at t+1, `FrameResult`).
@@ -506,7 +555,7 @@ def track_step(
     T_t, theta_t = state.T_world_root, state.theta
 
     # 1. Every modality starts its frame.
-    modalities, ctx, data = start_modalities(setup, state, frames, host, offsets, params, crop_shape, scales)
+    modalities, ctx, data = start_modalities(setup, state, frames, host, offsets, params, crop_shape, scales, early)
     contexts = tuple(modality_context(ctx, setup, i) for i in range(len(modalities)))
     motion_idx = [i for i, m in enumerate(modalities) if m.motion]
 

@@ -10,9 +10,11 @@ stream of frames into poses:
 
 Between frames, on the host: the crop around the object (one static size class for all cameras,
 chosen from the projected model at t with a margin that grows with the last motion), SIFT detection
-and matching (OpenCV, one thread), and a re-plan of the rasteriser when a render overflowed (the
-frame is then redone). Everything else is `track_step`, one compiled program per configuration,
-crop size class and raster plan. After a LOST frame (rigid object, line modality) the hypothesis search
+and matching (OpenCV, one thread per camera and core), and a re-plan of the rasteriser when a render overflowed
+(the frame is then redone). Everything else is `track_step`, one compiled program per configuration,
+crop size class and raster plan; with a modality that reads host inputs (SIFT) its first part, `start_frame`
+(crops, render at χ_t, flow), is a program of its own, dispatched before the host detects and matches so
+that the device computes the flow meanwhile (`Tracker.overlap_host`). After a LOST frame (rigid object, line modality) the hypothesis search
 (`jaxtrack.track._recovery.recover_pose`, compiled in the background after the first frame) looks for the
 pose, and the normal step is run again from what it found (status RECOVERED when that step is OK).
 """
@@ -58,10 +60,13 @@ from ._step import (
     TrackerSetup,
     TrackerState,
     crop_frames,
+    reads_host,
+    start_frame,
     track_step,
 )
 
 _track_step_jit = persistent_jit(track_step)
+_start_frame_jit = persistent_jit(start_frame)
 _recover_pose_jit = persistent_jit(recover_pose)
 
 # Factor on the Section V flow weights in the tracker's defaults (see `default_params`).
@@ -263,6 +268,9 @@ class Tracker:
         # $JAXTRACK_RECOVERY_WARMUP=0 compiles it when first needed instead (the test suite: most of its trackers
         # never lose the object, and each compile costs a few seconds of its two cores).
         self.warm_up_recovery = os.environ.get("JAXTRACK_RECOVERY_WARMUP", "1") != "0"
+        # With a modality that reads host inputs (SIFT), dispatch `start_frame` (crops, render, flow) before making
+        # them, so the device works while the host detects ($JAXTRACK_OVERLAP_HOST=0: one program, host first).
+        self.overlap_host = os.environ.get("JAXTRACK_OVERLAP_HOST", "1") != "0"
         self.keyframes: KeyframeModel | None = None  # SIFT keyframes for the re-detection (`RecoveryConfig.keyframes`)
         if joint_limits is not None or pose_prior is not None:  # checked now, not at the first frame
             default_params(self.model, (64, 64), self.dtype, joint_limits=joint_limits, pose_prior=pose_prior)
@@ -541,12 +549,11 @@ class Tracker:
             timings["total_s"] = time.perf_counter() - start
             return lost, self._out_of_view(state), {"timings": timings, "offsets": None, "crop_shape": None, "scales": None,
                                                     "recovery": None}
-        host = self.host_inputs(state, frames, timings)
         params = self.params_for(crop_shape) if params is None else params
         frames_j = jnp.asarray(self._frames_as_state(frames))
         step_start = time.perf_counter()
-        new_state, result = self._run_step(state, frames_j, host, offsets, params, crop_shape, scales)
-        timings["step_s"] = time.perf_counter() - step_start
+        new_state, result, host_s = self._run_step(state, frames, frames_j, offsets, params, crop_shape, scales, timings=timings)
+        timings["step_s"] = time.perf_counter() - step_start - host_s
         recovery = None
         if recover and int(result.status) == Status.LOST and self.recovery_modality() is not None:
             rec_start = time.perf_counter()
@@ -579,18 +586,38 @@ class Tracker:
         self._boxes_memo = (key, boxes)
         return boxes.copy()
 
-    def _run_step(self, state, frames_j, host, offsets, params, crop_shape, scales):
-        """The compiled step; after a render overflow the plans are made again and the frame is redone."""
+    def _overlaps_host(self, *start_args) -> bool:
+        """Whether to dispatch `start_frame` before the host inputs: asked for, some modality reads host inputs, and
+        the call returns at once (a kept program, `persistent_jit`; `eqx.filter_jit` waits for the result, and two
+        programs run one after the other cost more than one)."""
+        return (self.overlap_host and any(reads_host(m) for m in self.config.modalities())
+                and _start_frame_jit.dispatches_async(*start_args))
+
+    def _run_step(self, state, frames, frames_j, offsets, params, crop_shape, scales, host=None, timings=None):
+        """The compiled step; after a render overflow the plans are made again and the frame is redone.
+
+        The host inputs (`host_inputs`, unless given) are made after `start_frame` is dispatched where the host's
+        work can overlap the device's (`overlap_host`). Returns (state, result, seconds spent making host inputs)."""
+        offsets_j, scales_j = jnp.asarray(offsets), _as_array(scales)
+        host_s = 0.0
         for _ in range(3):
-            new_state, result = _track_step_jit(self.setup(), state, frames_j, host, jnp.asarray(offsets), params, crop_shape,
-                                                _as_array(scales))
+            early = None
+            start_args = (self.setup(), state, frames_j, offsets_j, params, crop_shape, scales_j)
+            if self._overlaps_host(*start_args):  # dispatched, not waited for: the device works while the host detects
+                early = _start_frame_jit(*start_args)
+            if host is None:
+                host_start = time.perf_counter()
+                host = self.host_inputs(state, frames, timings)
+                host_s = time.perf_counter() - host_start
+            new_state, result = _track_step_jit(self.setup(), state, frames_j, host, offsets_j, params, crop_shape,
+                                                scales_j, early)
             if int(result.status) != Status.RENDER_OVERFLOW:
                 break
             # The crops' plan in this step's own windows, at the poses it rendered (χ_t and the result).
             self._replan(result.T_world_root, result.theta, (offsets, crop_shape, scales),
                          poses=((state.T_world_root, state.theta),))
         jax.block_until_ready(result)
-        return new_state, result
+        return new_state, result, host_s
 
     # --- recovery (issue 24) ------------------------------------------------------------------------
     def recovery_modality(self) -> int | None:
@@ -722,8 +749,7 @@ class Tracker:
             visible[c, y0:y1 + 1, x0:x1 + 1] = on_screen[c]
         restart = eqx.tree_at(lambda s: (s.T_world_root, s.images, s.data_weight, s.visible), state,
                               (T_found, frames_j, jnp.ones_like(state.data_weight), jnp.asarray(visible)))
-        host = self.host_inputs(restart, frames)
-        new_state, result = self._run_step(restart, frames_j, host, offsets, params, crop_shape, scales)
+        new_state, result, _ = self._run_step(restart, frames, frames_j, offsets, params, crop_shape, scales)
         info["windows"] = (offsets, crop_shape, scales)
         info["confidence"] = float(result.confidence)
         found_ev, lost_ev = np.asarray(result.loss_evidence), np.asarray(lost.loss_evidence)
