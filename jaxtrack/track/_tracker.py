@@ -228,6 +228,13 @@ class Tracker:
         joint_limits: (lower, upper) (J,) joint limits in model units for the default parameters (none by
             default: the method uses no priors).
         pose_prior: (rotation, translation) relative stiffnesses of the pose prior for the default parameters.
+
+    Attributes (settable):
+        overlap_host: dispatch `start_frame` (crops, render at χ_t, the flow) before the host makes its inputs (SIFT),
+            so the device computes while the host detects; used where that program dispatches asynchronously (a kept
+            program, `jaxtrack.enable_compilation_cache`). The poses are the same either way. Default on
+            ($JAXTRACK_OVERLAP_HOST=0: off).
+        warm_up_recovery: compile the recovery search in a background thread after the first frame.
     """
 
     def __init__(self, mesh: Mesh, cameras: Camera, model: KinematicModel | None = None, config: TrackerConfig | None = None,
