@@ -284,6 +284,7 @@ def test_with_sift_the_host_overlaps_a_separate_start_program_and_the_poses_are_
     images, T0 = seq["images"][0].astype(np.float32), seq["T_cam_obj"][0][0]
     start_program = tracker_module._start_frame_jit
     monkeypatch.setattr(start_program, "memory", {})  # as in a new process
+    monkeypatch.setattr(os, "cpu_count", lambda: 2)  # a core left for the device beside the one camera's detection
 
     def run():
         tracker = Tracker(mesh, camera, config=TrackerConfig(cues=("region", "sift")))
