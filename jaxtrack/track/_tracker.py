@@ -599,8 +599,9 @@ class Tracker:
         """Whether to dispatch `start_frame` before the host inputs: asked for, some modality reads host inputs, the
         host's threads (one per camera, up to the cores: `sift_matches`) leave a core for the device, and the call
         returns at once (a kept program, `persistent_jit`; `eqx.filter_jit` waits for the result, and two programs run
-        one after the other cost more than one). Measured on 2 cores, frames alternating in one process: 1 camera
-        47.5 → 42.3 ms per frame; 4 cameras 156 → 165 ms (the host already used both cores)."""
+        one after the other cost more than one). Measured on 2 cores, frames alternating in one process
+        (experiments/bench_overlap.py): 1 camera 44.9 → 40.7 ms per frame; 4 cameras 188.9 → 201.9 ms (the host
+        already used both cores)."""
         wanted = self.num_cameras < (os.cpu_count() or 1) if self.overlap_host is None else self.overlap_host
         return (wanted and any(reads_host(m) for m in self.config.modalities())
                 and _start_frame_jit.dispatches_async(*start_args))
