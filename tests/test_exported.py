@@ -228,6 +228,9 @@ def test_the_tracker_setups_signature_is_the_same_in_every_process():
 
 
 def test_a_tracker_with_the_cache_tracks_as_without_and_a_new_process_traces_nothing(folder, monkeypatch):
+    """With SIFT (a modality that reads host inputs) and a kept, asynchronously dispatched program, `Tracker.step`
+    runs `start_frame` (crops, render at χ_t) as a program of its own while the host matches keypoints, then
+    `track_step(early=)`: the poses equal those of the one program `eqx.filter_jit` runs without the cache."""
     import jaxtrack as jt
     from jaxtrack.render import make_mesh
     from jaxtrack.synth import SynthConfig, render_sequence
@@ -241,49 +244,10 @@ def test_a_tracker_with_the_cache_tracks_as_without_and_a_new_process_traces_not
     mesh, camera = make_mesh(seq["mesh"].vertices, seq["mesh"].faces), jt.make_camera(seq["K"], 128, 96)
     images, T0 = seq["images"][0].astype(np.float32), seq["T_cam_obj"][0][0]
 
-    def run():
-        tracker = Tracker(mesh, camera, config=TrackerConfig(cues=("region",)))
-        state = tracker.start(images[0], T0)
-        poses = []
-        for k in (1, 2):
-            state, result, _ = tracker.step(state, images[k])
-            poses.append(np.asarray(result.T_world_root))
-        return np.stack(poses)
-
-    monkeypatch.setattr(_exported, "_FOLDER", [None])
-    plain = run()  # eqx.filter_jit
-    monkeypatch.setattr(_exported, "_FOLDER", [folder])
-    with_cache = run()
-    assert any(name.startswith("track_step-") for name in _files(folder))
-    # A new process: nothing in memory; the step, the modality states and the appearance come from the folder.
-    for wrapped in (tracker_module._track_step_jit, tracker_module._initial_modality_states, tracker_module._initial_appearance_jit):
+    kept = (tracker_module._track_step_jit, tracker_module._start_frame_jit, tracker_module._initial_modality_states,
+            tracker_module._initial_appearance_jit)
+    for wrapped in kept:  # as in a new process
         monkeypatch.setattr(wrapped, "memory", {})
-        monkeypatch.setattr(wrapped, "loaded", 0)
-    before = eqx.debug.get_num_traces(track_step)
-    again = run()
-    assert eqx.debug.get_num_traces(track_step) == before
-    assert tracker_module._track_step_jit.loaded == 1 and tracker_module._initial_modality_states.loaded == 1
-    assert np.array_equal(with_cache, again)
-    assert np.allclose(plain, with_cache, rtol=0, atol=1e-9), np.abs(plain - with_cache).max()
-
-
-def test_with_sift_the_host_overlaps_a_separate_start_program_and_the_poses_are_the_same(folder, monkeypatch):
-    """With a kept (asynchronously dispatched) program, `Tracker.step` runs `start_frame` (crops, render at χ_t) as
-    a program of its own while the host matches SIFT keypoints, then `track_step(early=)`: the poses equal the one
-    program's. Without the cache (`eqx.filter_jit`, which waits for its result) the step stays one program."""
-    import jaxtrack as jt
-    from jaxtrack.render import make_mesh
-    from jaxtrack.synth import SynthConfig, render_sequence
-    from jaxtrack.track import Tracker, TrackerConfig
-    from jaxtrack.track import _tracker as tracker_module
-
-    cfg = SynthConfig(object="box", appearance="photo", texture_photo="astronaut", size_mm=160, motion="random",
-                      step_px=3, step_deg=1.5, frames=3, width=128, height=96, focal=140, background="coffee", seed=5)
-    seq = render_sequence(cfg)
-    mesh, camera = make_mesh(seq["mesh"].vertices, seq["mesh"].faces), jt.make_camera(seq["K"], 128, 96)
-    images, T0 = seq["images"][0].astype(np.float32), seq["T_cam_obj"][0][0]
-    start_program = tracker_module._start_frame_jit
-    monkeypatch.setattr(start_program, "memory", {})  # as in a new process
     monkeypatch.setattr(os, "cpu_count", lambda: 2)  # a core left for the device beside the one camera's detection
 
     def run():
@@ -296,12 +260,21 @@ def test_with_sift_the_host_overlaps_a_separate_start_program_and_the_poses_are_
         return np.stack(poses)
 
     monkeypatch.setattr(_exported, "_FOLDER", [None])
-    one_program = run()
-    assert not start_program.memory  # eqx.filter_jit: the step stayed one program
+    plain = run()  # eqx.filter_jit: one program after the host
+    assert not tracker_module._start_frame_jit.memory
     monkeypatch.setattr(_exported, "_FOLDER", [folder])
-    overlapped = run()
-    assert len(start_program.memory) == 1 and any(name.startswith("start_frame-") for name in _files(folder))
-    assert np.allclose(one_program, overlapped, rtol=0, atol=1e-9), np.abs(one_program - overlapped).max()
+    with_cache = run()
+    assert {"track_step", "start_frame"} <= {name.split("-")[0] for name in _files(folder)}
+    # A new process: nothing in memory; the step, its start, the modality states and the appearance come from the folder.
+    for wrapped in kept:
+        monkeypatch.setattr(wrapped, "memory", {})
+        monkeypatch.setattr(wrapped, "loaded", 0)
+    before = eqx.debug.get_num_traces(track_step)
+    again = run()
+    assert eqx.debug.get_num_traces(track_step) == before
+    assert all(wrapped.loaded == 1 for wrapped in kept[:3])
+    assert np.array_equal(with_cache, again)
+    assert np.allclose(plain, with_cache, rtol=0, atol=1e-9), np.abs(plain - with_cache).max()
 
 
 def test_dispatches_async_only_for_kept_programs(folder, monkeypatch):
