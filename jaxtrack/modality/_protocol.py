@@ -199,7 +199,8 @@ class Modality(eqx.Module):
         """Host-side per-frame input (numpy and OpenCV allowed; e.g. SIFT matches), handed to `start`.
 
         Runs between frames, outside the compiled step. Must return a pytree of arrays of a static
-        shape (padded), or None. Default None.
+        shape (padded), or None. Default None. A modality that overrides it starts its frame after the host
+        inputs exist; the others' `start` may run on the device meanwhile (`jaxtrack.track.start_frame`).
         """
         return None
 
