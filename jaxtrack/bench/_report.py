@@ -106,7 +106,10 @@ def plot(results: list[dict], path: pathlib.Path) -> pathlib.Path | None:
     ax.set_ylabel("success at 5 cm / 5° (%)")
     ax.set_ylim(0, 102)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=7)
+    else:  # no run finished (a bench past its timeout): say so instead of an empty legend
+        ax.text(0.5, 0.5, "no finished runs", ha="center", va="center", transform=ax.transAxes)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
