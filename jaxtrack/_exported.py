@@ -262,12 +262,15 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
         entry, dynamic, key = self._resolve(args, kwargs)
         if entry is _PLAIN:
             return self.plain(*args, **kwargs)
+        return self._run(entry, dynamic, key, args, kwargs)
+
+    def _run(self, entry, dynamic, key, args, kwargs):
         try:
             return entry(dynamic)
         except Exception as error:  # noqa: BLE001  (e.g. a program of another platform: the plain path, for good)
             self.memory[key] = _PLAIN
             warnings.warn(f"jaxtrack: the kept program of {self.qualname} failed ({type(error).__name__}: {error}); "
-                          "traced instead", RuntimeWarning, stacklevel=2)
+                          "traced instead", RuntimeWarning, stacklevel=3)
             return self.plain(*args, **kwargs)
 
     def dispatches_async(self, *args, **kwargs) -> bool:
@@ -275,6 +278,12 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
         kept program does; `eqx.filter_jit` waits for the result (to report runtime errors). Makes the call's entry
         (traces or loads its program) when it has none yet, as the call would."""
         return self._resolve(args, kwargs)[0] is not _PLAIN
+
+    def call_async(self, *args, **kwargs):
+        """The call where it dispatches asynchronously (`dispatches_async`: its result comes back at once and is
+        computed meanwhile), else None and nothing runs. One resolution of the arguments for both."""
+        entry, dynamic, key = self._resolve(args, kwargs)
+        return None if entry is _PLAIN else self._run(entry, dynamic, key, args, kwargs)
 
     def _signature(self, treedef, is_dynamic, static, avals) -> bytes | None:
         from .modality._registry import _MODALITIES

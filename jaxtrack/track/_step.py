@@ -493,12 +493,12 @@ def start_frame(setup: TrackerSetup, state: TrackerState, frames, offsets, param
 
 def start_modalities(setup: TrackerSetup, state: TrackerState, frames, host, offsets, params: TrackerParams, crop_shape,
                      scales=None, early: FrameStart | None = None):
-    """Step 1: the `FrameContext` and every modality's per-frame data (with `early`: only the modalities that read
-    host inputs start here, the others' data come from it). Returns (modalities, ctx, frame data)."""
+    """Step 1: the `FrameContext` and every modality's per-frame data: `start_frame` (unless `early` is its output,
+    made in a program of its own), then the modalities that read host inputs. Returns (modalities, ctx, frame data)."""
     modalities = setup.config.modalities()
+    early = start_frame(setup, state, frames, offsets, params, crop_shape, scales) if early is None else early
     ctx = frame_context(setup, state, frames, offsets, crop_shape, scales, early)
-    data = tuple(early.data[i] if early is not None and not reads_host(m) else
-                 m.start(modality_context(ctx, setup, i), s, h, params)
+    data = tuple(m.start(modality_context(ctx, setup, i), s, h, params) if reads_host(m) else early.data[i]
                  for i, (m, s, h) in enumerate(zip(modalities, state.modalities, host)))
     return modalities, ctx, data
 

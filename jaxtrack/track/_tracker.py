@@ -595,16 +595,15 @@ class Tracker:
         self._boxes_memo = (key, boxes)
         return boxes.copy()
 
-    def _overlaps_host(self, *start_args) -> bool:
-        """Whether to dispatch `start_frame` before the host inputs: asked for, some modality reads host inputs, the
-        host's threads (one per camera, up to the cores: `sift_matches`) leave a core for the device, and the call
-        returns at once (a kept program, `persistent_jit`; `eqx.filter_jit` waits for the result, and two programs run
-        one after the other cost more than one). Measured on 2 cores, frames alternating in one process
-        (experiments/bench_overlap.py): 1 camera 44.9 → 40.7 ms per frame; 4 cameras 188.9 → 201.9 ms (the host
-        already used both cores)."""
+    def _overlaps_host(self) -> bool:
+        """Whether to dispatch `start_frame` before the host inputs: asked for, some modality reads host inputs, and
+        the host's threads (one per camera, up to the cores: `sift_matches`) leave a core for the device. `_run_step`
+        then dispatches it only where the call returns at once (a kept program, `persistent_jit.call_async`;
+        `eqx.filter_jit` waits for the result, and two programs run one after the other cost more than one). Measured
+        on 2 cores, frames alternating in one process (experiments/bench_overlap.py): 1 camera 44.9 → 40.7 ms per
+        frame; 4 cameras 188.9 → 201.9 ms (the host already used both cores)."""
         wanted = self.num_cameras < (os.cpu_count() or 1) if self.overlap_host is None else self.overlap_host
-        return (wanted and any(reads_host(m) for m in self.config.modalities())
-                and _start_frame_jit.dispatches_async(*start_args))
+        return wanted and any(reads_host(m) for m in self.config.modalities())
 
     def _run_step(self, state, frames, frames_j, offsets, params, crop_shape, scales, host=None, timings=None):
         """The compiled step; after a render overflow the plans are made again and the frame is redone.
@@ -614,16 +613,16 @@ class Tracker:
         offsets_j, scales_j = jnp.asarray(offsets), _as_array(scales)
         host_s = 0.0
         for _ in range(3):
+            setup = self.setup()
             early = None
-            start_args = (self.setup(), state, frames_j, offsets_j, params, crop_shape, scales_j)
-            if self._overlaps_host(*start_args):  # dispatched, not waited for: the device works while the host detects
-                early = _start_frame_jit(*start_args)
+            if self._overlaps_host():  # dispatched, not waited for: the device works while the host detects
+                early = _start_frame_jit.call_async(setup, state, frames_j, offsets_j, params, crop_shape, scales_j)
             if host is None:
                 host_start = time.perf_counter()
                 host = self.host_inputs(state, frames, timings)
                 host_s = time.perf_counter() - host_start
-            new_state, result = _track_step_jit(self.setup(), state, frames_j, host, offsets_j, params, crop_shape,
-                                                scales_j, early)
+            new_state, result = _track_step_jit(setup, state, frames_j, host, offsets_j, params, crop_shape, scales_j,
+                                                early)
             if int(result.status) != Status.RENDER_OVERFLOW:
                 break
             # The crops' plan in this step's own windows, at the poses it rendered (χ_t and the result).
