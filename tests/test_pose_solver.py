@@ -444,3 +444,27 @@ def test_joint_prior_derivatives_match_finite_differences():
     fd = np.stack([(f(a0.at[i].add(eps)) - f(a0.at[i].add(-eps))) / (2 * eps) for i in range(3)], -1)
     assert np.abs(fd).max() > 1e-3
     np.testing.assert_allclose(jac, fd, atol=1e-6)
+
+
+@pytest.mark.parametrize("model_name", ["rigid", "chain3"])
+def test_weights_per_pixel_scale_each_row_by_its_focal_over_depth_squared(model_name):
+    """`weights_per_pixel`: w · fx fy / Z² with Z the row point's depth in its own camera at the given pose (two
+    cameras, parts of a chain), the rows as given when off."""
+    from jaxtrack.solve import model_points_world, weights_per_pixel
+
+    model = MODELS[model_name]()
+    scene = random_pose_scene(3, num_points=40, num_cameras=2, model=model)
+    rng = np.random.default_rng(0)
+    corr = _corr(scene, weight=rng.uniform(0.5, 2.0, len(scene.pixel)))
+    T, theta = jnp.asarray(scene.T_world_root), jnp.asarray(scene.theta)
+    out = weights_per_pixel(corr, scene.cameras, model, T, theta)
+    X = np.asarray(model_points_world(model, T, theta, corr.p_model, corr.part))
+    cams = np.asarray(corr.camera)
+    T_cw, K = np.asarray(scene.cameras.T_cam_world)[cams], np.asarray(scene.cameras.K)[cams]
+    z = np.einsum("nj,nj->n", T_cw[:, 2, :3], X) + T_cw[:, 2, 3]
+    assert np.all(z > 1.0) and len(np.unique(cams)) == 2
+    np.testing.assert_allclose(np.asarray(out.weight), np.asarray(corr.weight) * K[:, 0, 0] * K[:, 1, 1] / z**2, rtol=1e-9)
+    np.testing.assert_array_equal(np.asarray(weights_per_pixel(corr, scene.cameras, model, T, theta, on=0.0).weight),
+                                  np.asarray(corr.weight))
+    for leaf_in, leaf_out in zip(jax.tree.leaves(eqx.filter(corr, eqx.is_array)), jax.tree.leaves(eqx.filter(out, eqx.is_array))):
+        assert leaf_in.shape == leaf_out.shape

@@ -20,3 +20,4 @@ from ._pose_solver import model_points_world as model_points_world
 from ._pose_solver import plucker_residuals as plucker_residuals
 from ._pose_solver import root_conditioning as root_conditioning
 from ._pose_solver import solve_pose as solve_pose
+from ._pose_solver import weights_per_pixel as weights_per_pixel

@@ -266,6 +266,9 @@ class TrackerParams(eqx.Module):
             frame is more likely beyond 5 cm / 5° than not).
         flow_structure: k of the flow's structure factor g = λ_min / (λ_min + k σ_n² + 1) on eq. 8's confidence
             (`jaxtrack.cues.flow.structure_confidence`: the image must pin the flow); negative: off (the paper's c).
+        rows_per_px: 1: the flow, SIFT and level-set rows' weights count per px² of the full-frame image, as the
+            line modality's (`jaxtrack.solve.weights_per_pixel`: × (f / Z)²), so that the cues' balance does not
+            depend on the object's distance or the image resolution; 0: per mm² of the Plücker residual (eq. 4).
     """
 
     weights: CueWeights
@@ -289,6 +292,7 @@ class TrackerParams(eqx.Module):
     line_learning_rate: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(0.2))
     loss_weights: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(LOSS_WEIGHTS))
     flow_structure: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(-1.0))
+    rows_per_px: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(0.0))
     uncertain_confidence: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(0.5))
     lost_confidence: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(0.25))
 

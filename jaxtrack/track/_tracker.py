@@ -79,6 +79,8 @@ TRACKER_FLOW_FACTOR = 0.1
 # teabox-large-motion 64 → 91 %, turntable-teapot 55 → 73 %; tea box 0.62° → 0.45°. Worse: the real dragon
 # 49 → 40 % (k = 1: 45 %), the occluded-box preset 73 → 64 % (one frame of 11), the real cube 1.90° → 1.97°.
 FLOW_STRUCTURE = 4.0
+# The flow, SIFT and level-set rows' weights per px² as the lines' (`TrackerParams.rows_per_px`; 0: per mm²).
+ROWS_PER_PX = 1.0
 
 
 def _as_array(scales):
@@ -205,6 +207,7 @@ def default_params(
         uncertain_confidence=jnp.asarray(0.5, dtype),
         lost_confidence=jnp.asarray(0.25, dtype),
         flow_structure=jnp.asarray(FLOW_STRUCTURE, dtype),
+        rows_per_px=jnp.asarray(ROWS_PER_PX, dtype),
     )
 
 

@@ -15,7 +15,7 @@ import jax.numpy as jnp
 
 from ..._status import Status
 from ...modality import FrameContext, FusionCounts, Modality, register_modality
-from ...solve import Correspondences, Cue
+from ...solve import Correspondences, Cue, weights_per_pixel
 from ._api import FlowConfig
 from ._correspondences import flow_correspondences
 from ._solver import flow_core
@@ -64,7 +64,8 @@ class OpticalFlow(Modality):
             lambda cam, fl, conf, ok, pm, part, c: flow_correspondences(cam, fl, conf, ok, pm, part, None, self.stride, c)
         )(ctx.crop_cameras, flow.flow, confidence, usable, ren.p_model, ren.part_id,
           jnp.arange(ctx.num_cameras, dtype=jnp.int32))
-        return _flatten_cameras(rows)
+        return weights_per_pixel(_flatten_cameras(rows), ctx.cameras, ctx.model, ctx.pose_t.T_world_root,
+                                 ctx.pose_t.theta, params.rows_per_px)
 
     def rows(self, ctx, state, frame: Correspondences, carry, pose, render, round_index, params):
         return frame, carry

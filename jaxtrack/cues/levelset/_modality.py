@@ -30,7 +30,7 @@ from ...modality import (
     register_modality,
 )
 from ...render import Mesh, RasterPlan, render
-from ...solve import Correspondences, Cue, CueWeights, correspondences_from_pixels
+from ...solve import Correspondences, Cue, CueWeights, correspondences_from_pixels, weights_per_pixel
 from ._densities import LocalDensities, check_grid, data_term
 from ._energy import RegionParams, evolve
 from ._features import feature_channels
@@ -190,6 +190,7 @@ class LevelSetRegion(Modality):
             tangent_weight=jnp.broadcast_to(
                 jnp.where(carried_in, rp.tangent_weight, 1.0)[:, None].astype(dtype), weight.shape).reshape(-1),
         )
+        corr = weights_per_pixel(corr, ctx.cameras, ctx.model, pose.T_world_root, pose.theta, params.rows_per_px)
         new = LevelSetCarry(phi, phi0, dens_next, jnp.ones_like(carry.has_densities), jnp.sum(weight > 0).astype(jnp.int32))
         return corr, new
 

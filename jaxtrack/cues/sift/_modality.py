@@ -12,7 +12,7 @@ from __future__ import annotations
 import equinox as eqx
 
 from ...modality import FrameContext, FusionCounts, Modality, Pose, register_modality
-from ...solve import Correspondences, Cue
+from ...solve import Correspondences, Cue, weights_per_pixel
 from ._assign import _backprojection_body, sift_correspondences
 from ._detect import SiftMatches, sift_matches
 from ._filters import remove_gross_and_static
@@ -47,8 +47,10 @@ class SiftKeypoints(Modality):
     def start(self, ctx: FrameContext, state, host: SiftMatches, params) -> Correspondences:
         kept = remove_gross_and_static(host, params.sift)  # thresholds in full-frame pixels
         local = SiftMatches(ctx.to_crop(kept.p_t), ctx.to_crop(kept.p_t1), kept.valid)  # → crop pixels
-        return sift_correspondences(local, ctx.render_t, ctx.crop_cameras, params.sift, 1.0, self.mode, ctx.mesh,
+        rows = sift_correspondences(local, ctx.render_t, ctx.crop_cameras, params.sift, 1.0, self.mode, ctx.mesh,
                                     ctx.model, ctx.pose_t.T_world_root, ctx.pose_t.theta)
+        return weights_per_pixel(rows, ctx.cameras, ctx.model, ctx.pose_t.T_world_root, ctx.pose_t.theta,
+                                 params.rows_per_px)
 
     def check_prediction(self, ctx: FrameContext, state, frame: Correspondences, pose: Pose, params) -> Correspondences:
         """The back-projection check against the preliminary pose: rows farther than the bound lose their weight."""
