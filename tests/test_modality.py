@@ -131,6 +131,39 @@ def test_fuse_rows_is_the_section_v_rule():
         np.testing.assert_allclose(np.asarray(ours.weight), np.asarray(ref.weight), rtol=1e-12)
 
 
+def test_fuse_rows_without_the_reference_modality_counts_the_next_one():
+    """A configuration without the reference modality weighs its rows against the next one instead of zeroing them:
+    SIFT alone counts its own rows in the prediction, flow + SIFT count n_OF in the refinement; with the reference
+    present the rule is unchanged (`test_fuse_rows_is_the_section_v_rule`)."""
+    from jaxtrack.track._builtin_modalities import LevelSetRegion, OpticalFlow, SiftKeypoints
+
+    _, corr = _scene_rows(capacity=64)
+    w = np.zeros(64)
+    w[:10] = 1.0
+    sift = eqx.tree_at(lambda c: c.cue, corr.with_weight(jnp.asarray(w)), jnp.full_like(corr.cue, int(Cue.SIFT)))
+    w = np.zeros(64)
+    w[:30] = np.linspace(0.5, 2.0, 30)
+    flow = eqx.tree_at(lambda c: c.cue, corr.with_weight(jnp.asarray(w)), jnp.full_like(corr.cue, int(Cue.FLOW)))
+    factors = CueWeights(region=0.7, flow=0.3, sift=2.0)
+
+    class P(eqx.Module):
+        weights: CueWeights
+
+    ratio = float(factors.sift_ratio)
+    for prediction in (True, False):  # SIFT alone: n_ref = its own 10 rows
+        alone = np.asarray(fuse_rows((SiftKeypoints(),), [sift], P(factors), prediction=prediction).weight)
+        np.testing.assert_allclose(alone[:10], 2.0 * ratio * 10, rtol=1e-12)
+        assert np.all(alone[10:] == 0)
+    both = np.asarray(fuse_rows((OpticalFlow(), SiftKeypoints()), [flow, sift], P(factors), prediction=False).weight)
+    np.testing.assert_allclose(both[:30], 0.3 * np.linspace(0.5, 2.0, 30), rtol=1e-12)  # n_OF / n_OF = 1
+    np.testing.assert_allclose(both[64:74], 2.0 * ratio * 30, rtol=1e-12)  # n_ref = n_OF
+    # region + SIFT: the refinement counts n_C as before; the prediction (SIFT's rows only) counts SIFT's own
+    region = eqx.tree_at(lambda c: c.cue, corr.with_weight(jnp.asarray((np.arange(64) < 50).astype(float))),
+                         jnp.full_like(corr.cue, int(Cue.REGION)))
+    refine = np.asarray(fuse_rows((LevelSetRegion(), SiftKeypoints()), [region, sift], P(factors)).weight)
+    np.testing.assert_allclose(refine[64:74], 2.0 * ratio * 50, rtol=1e-12)
+
+
 # --- the pose prior -------------------------------------------------------------------------------
 def test_pose_prior_zero_is_no_prior_and_strong_holds_the_anchor():
     scene, corr = _scene_rows(noise_px=1.0)

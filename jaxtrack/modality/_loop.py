@@ -37,12 +37,19 @@ def fuse_rows(modalities: Sequence[Modality], row_sets: Sequence[Correspondences
         params: the tracker's parameters (user factors live there).
         prediction: True in the prediction step (the reference count is n_OF instead of n_C). Static.
 
+    A configuration without the reference modality counts the next one instead (static): the refinement without a
+    contour modality counts n_OF, and without the flow the motion modalities' rows are the reference (SIFT alone
+    counts its own). A zero reference used to zero every motion weight: SIFT alone and region + SIFT made no
+    prediction (`experiments/large_motion.py`: SIFT's "prediction" was the frame-t pose in every trial).
+
     Returns:
         One `Correspondences` (capacity = sum of the sets' capacities).
     """
     counts = [live_count(c) for c in row_sets]
     dtype = row_sets[0].weight.dtype
-    flag = (lambda m: m.prediction_reference) if prediction else (lambda m: m.contour)
+    flags = ((lambda m: m.prediction_reference) if prediction else (lambda m: m.contour),
+             lambda m: m.prediction_reference, lambda m: m.motion)
+    flag = next((f for f in flags if any(f(m) for m in modalities)), flags[0])
     reference = sum((n for m, n in zip(modalities, counts) if flag(m)), jnp.zeros((), dtype))
     scaled = [
         c.with_weight(c.weight * m.weight_scale(FusionCounts(reference, n), params, prediction).astype(dtype))
