@@ -388,15 +388,20 @@ def _turned(state, degrees):
 @pytest.mark.xdist_group("lines_sift")
 def test_a_pose_jump_is_flagged_lost_in_the_frame_it_happens(sequence, lines_sift):
     """Issue 24: a pose teleported 40° (a jump the object did not make) is LOST in that frame, where the contour
-    agreement alone (the confidence up to now) still read 0.9; the frame before it, tracked, is OK."""
+    agreement alone (the confidence up to now) still read 0.9; the frame before it, tracked (within 5°), has the
+    higher confidence. (That frame read OK, 0.60, with the flow and SIFT rows per mm²; per px² it is tracked closer,
+    2.5° against 5.9°, and reads UNCERTAIN, 0.35: its SIFT prediction is 1.27 of a motion away from the final pose,
+    the false alarm the loss experiment counts, experiments/results/loss_detection.md.)"""
     tracker, state, tracked = lines_sift
-    assert int(tracked.status) == jt.Status.OK and float(tracked.confidence) > 0.5, (int(tracked.status), float(tracked.confidence))
+    tracked_error = float(rotation_error_deg(np.asarray(tracked.T_world_root)[:3, :3], sequence["T"][1][:3, :3]))
+    assert tracked_error < 5.0 and int(tracked.status) != jt.Status.LOST, (tracked_error, int(tracked.status))
     _, result, _ = tracker.step(_turned(state, 40.0), sequence["images"][2], recover=False)  # the step's own status
     error = float(rotation_error_deg(np.asarray(result.T_world_root)[:3, :3], sequence["T"][2][:3, :3]))
     evidence = dict(zip(jt.track._step.LOSS_EVIDENCE, np.asarray(result.loss_evidence).round(3)))
     print(f"40° jump: error {error:.1f}°, confidence {float(result.confidence):.3f}, evidence {evidence}")
     assert error > 5.0  # the refinement did not undo it: the frame is wrong
     assert int(result.status) == jt.Status.LOST, (jt.Status(int(result.status)).name, evidence)
+    assert float(tracked.confidence) > float(result.confidence) + 0.2, (float(tracked.confidence), float(result.confidence))
 
 
 @pytest.mark.xdist_group("lines_sift")

@@ -250,6 +250,7 @@ class _RegionOnlyParams(eqx.Module):
 
     region: RegionParams
     weights: CueWeights
+    rows_per_px: jax.Array = eqx.field(default_factory=lambda: jnp.zeros(()))  # alone, the rows' unit changes nothing
 
 
 def _region_context(problem: RegionProblem, images, offsets, T, theta) -> FrameContext:
