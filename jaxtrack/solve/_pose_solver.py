@@ -144,7 +144,7 @@ def model_points_world(model: KinematicModel, T_world_root: jax.Array, theta: ja
 
 def weights_per_pixel(corr: Correspondences, cameras: Camera, model: KinematicModel, T_world_root: jax.Array,
                       theta: jax.Array, on=True) -> Correspondences:
-    """Rows whose weights were set per px² of the image made per mm² of the Plücker residual: w · (f / Z)².
+    """Rows weighted per px² of the image turned into weights per mm² of the Plücker residual: w · fx fy / Z².
 
     A point row's residual (eq. 4) is a distance in mm across the viewing ray; a pixel there spans Z / f mm
     (Z the point's depth in its camera at the given pose, f = √(fx fy) of that camera, `cameras` the full-frame

@@ -4,7 +4,8 @@ A motion modality: its rows are made once per frame in `start` (the flow of the 
 t+1, restricted to the model silhouette at χ_t, with r(x) of frame t as the data weight) and enter both
 the prediction and every refinement round. Their confidence is eq. 8's times the structure factor of frame t's
 crop (`structure_confidence`, `TrackerParams.flow_structure`) where that is on. Weight rule of Section V: w_i = c_i · n_ref / n_OF, where
-n_ref is n_C in the refinement and n_OF in the prediction.
+n_ref is n_C in the refinement and n_OF in the prediction, per px² of the image like the lines' rows
+(`TrackerParams.rows_per_px`, `jaxtrack.solve.weights_per_pixel`).
 """
 
 from __future__ import annotations

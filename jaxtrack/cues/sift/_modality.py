@@ -4,7 +4,8 @@ A motion modality. Detection and matching run on the host between frames (OpenCV
 inside the visible object region of frame t: `host_inputs`); in the step the matches are filtered
 (gross outliers, static background), assigned to the surface points (or closest visible vertices)
 rendered at χ_t, and after the prediction checked by back-projection. Weight rule of Section V:
-w = 0.002 · n_ref (n_C in the refinement, n_OF in the prediction).
+w = 0.002 · n_ref (n_C in the refinement, n_OF in the prediction), per px² of the image like the lines' rows
+(`TrackerParams.rows_per_px`).
 """
 
 from __future__ import annotations
