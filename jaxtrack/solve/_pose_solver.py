@@ -148,15 +148,17 @@ def weights_per_pixel(corr: Correspondences, cameras: Camera, model: KinematicMo
 
     A point row's residual (eq. 4) is a distance in mm across the viewing ray; a pixel there spans Z / f mm
     (Z the point's depth in its camera at the given pose, f = √(fx fy) of that camera, `cameras` the full-frame
-    rig, C stacked). The line modality weighs its rows per px² (M3T); the flow and SIFT rows converted alike keep
+    rig, C stacked, or one camera). The line modality weighs its rows per px² (M3T); the flow and SIFT rows converted alike keep
     the balance of the cues independent of the object's distance and of the image resolution. (N,) rows of
     any camera; padding rows keep weight 0; Z is clamped at 1 mm. `on` (a bool or 0/1 array): False returns the
     rows as given."""
     p_world = model_points_world(model, T_world_root, theta, corr.p_model, corr.part)
-    T = cameras.T_cam_world[corr.camera]  # (N, 4, 4)
-    z = jnp.einsum("nj,nj->n", T[:, 2, :3], p_world) + T[:, 2, 3]
-    K = cameras.K[corr.camera]
-    f2 = K[:, 0, 0] * K[:, 1, 1]
+    T_cw, K = cameras.T_cam_world, cameras.K
+    if K.ndim == 3:  # a stacked rig: each row's own camera (a single camera serves every row)
+        index = jnp.clip(corr.camera, 0, K.shape[0] - 1)
+        T_cw, K = T_cw[index], K[index]
+    z = jnp.einsum("...j,...j->...", T_cw[..., 2, :3], p_world) + T_cw[..., 2, 3]
+    f2 = K[..., 0, 0] * K[..., 1, 1]
     scale = jnp.where(jnp.asarray(on) > 0, f2 / jnp.maximum(z, 1.0) ** 2, 1.0)
     return eqx.tree_at(lambda c: c.weight, corr, corr.weight * scale.astype(corr.weight.dtype))
 
