@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 import jaxtrack as jt
-from jaxtrack.solve import make_correspondences, solve_pose
+from jaxtrack.solve import SolverConfig, make_correspondences, solve_pose
 from jaxtrack.solve._normal_equations import (
+    RayDepths,
     line_planes,
     plane_normal_equations,
     plane_residuals,
@@ -119,3 +120,54 @@ def test_solver_program_size_is_flat_in_the_joint_count():
     """
     sizes = {j: _solve_program_size(j) for j in (0, 24)}
     assert sizes[24] < 2 * sizes[0], sizes
+
+
+@pytest.mark.parametrize("model_name", ["rigid", "chain3"])
+def test_depth_invariant_normal_equations_are_the_gauss_newton_system_of_the_scaled_residual(model_name):
+    """With `RayDepths`: s · (Z₀/z)^p and its analytic columns (through H, g, cost) against jacfwd of the residual."""
+    model = MODELS[model_name]()
+    scene, corr, normals, offsets = _problem(model, seed=7)
+    origins = jnp.asarray(scene.cameras.center_world)[corr.camera]
+    offset = jnp.sum(corr.n * origins, -1)
+    T0, theta0 = jnp.asarray(scene.T_world_root), jnp.asarray(scene.theta)
+    a0 = jt.solve.model_points_world(model, T0, theta0, corr.p_model, corr.part)
+    # A reference depth 20 % off the depth at T0: the scale and its derivative both matter.
+    depths = RayDepths(offset, 1.2 * (jnp.sum(corr.n * a0, -1) - offset), jnp.asarray(0.7))
+    weight = jnp.asarray(np.random.default_rng(1).uniform(0.5, 2.0, corr.capacity))
+
+    def s_of(y):
+        return plane_residuals(model, jt.se3_exp(y[:6]) @ T0, y[6:], corr.p_model, corr.part, normals, offsets, depths, corr.n)
+
+    y0 = jnp.concatenate([jnp.zeros(6), theta0])
+    s = s_of(y0)
+    plain = plane_residuals(model, T0, theta0, corr.p_model, corr.part, normals, offsets)
+    np.testing.assert_allclose(s, plain * 1.2**0.7, rtol=1e-9)  # z = Z₀ / 1.2 at T0
+    J = np.asarray(jax.jacfwd(s_of)(y0)).reshape(-1, model.num_dof)
+    w = np.repeat(np.asarray(weight), 2)
+    H, g, cost = plane_normal_equations(model, T0, theta0, corr.p_model, corr.part, normals, offsets, weight, depths, corr.n)
+    np.testing.assert_allclose(H, J.T @ (w[:, None] * J), rtol=1e-8, atol=1e-8 * np.abs(H).max())
+    np.testing.assert_allclose(g, J.T @ (w * np.asarray(s).ravel()), rtol=1e-8, atol=1e-8 * np.abs(g).max())
+    np.testing.assert_allclose(cost, np.sum(w * np.asarray(s).ravel() ** 2), rtol=1e-10)
+
+
+def test_depth_invariant_solve_does_not_slide_the_object_toward_the_camera():
+    """Rows that disagree (every other point seen 120 px to the side), weighted alike: eq. 4 fits them best by moving
+    the object toward the camera (every distance across the rays shrinks: 0.59 of the depth); the depth-invariant
+    residual keeps the depth within 15 % (1.11)."""
+    model = jt.rigid_model(jnp.float64)
+    scene = random_pose_scene(11, num_points=60, noise_px=0.0, num_cameras=1, model=model)
+    pixel = np.asarray(scene.pixel, np.float64).copy()
+    pixel[::2, 0] += 120.0
+    corr = make_correspondences(scene.cameras, jnp.asarray(pixel), scene.p_model, camera_index=scene.camera_index,
+                                part=scene.part)
+    T0 = jnp.asarray(scene.T_world_root)
+    centre = np.asarray(scene.cameras.center_world)[0]
+    depth = lambda T: float(np.linalg.norm(np.asarray(T)[:3, 3] - centre))
+    config = SolverConfig(max_steps=50)
+    plain = solve_pose(model, corr, T0, config=config)
+    invariant = solve_pose(model, corr, T0, config=config, ray_origins=scene.cameras.center_world)
+    off = solve_pose(model, corr, T0, config=config, ray_origins=scene.cameras.center_world, depth_invariance=0.0)
+    assert jt.is_usable(plain.status) and jt.is_usable(invariant.status)
+    assert depth(plain.T_world_root) < 0.7 * depth(T0)  # the collapse this option exists for
+    assert abs(depth(invariant.T_world_root) / depth(T0) - 1.0) < 0.15
+    np.testing.assert_allclose(off.T_world_root, plain.T_world_root, atol=1e-6)  # p = 0 is eq. 4

@@ -19,6 +19,7 @@ Python loop over joints grew with D² (measured in experiments/bench_pose.py).
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 
@@ -71,6 +72,54 @@ def _plane_residuals(a, normals: jax.Array, offsets: jax.Array) -> jax.Array:
     return sum(normals[..., c] * a[c][..., None] for c in range(3)) - offsets
 
 
+class RayDepths(eqx.Module):
+    """What makes the plane residuals invariant to the depth along the rays (`depth_invariant`).
+
+    Attributes:
+        origin_offset: (N,) n · o, the ray direction against the centre o of the camera the ray leaves: the depth
+            of a point a along its ray is z = n · a − n · o.
+        reference: (N,) > 0, the depth Z₀ at which a residual keeps its size (the rows' depths at the solve's
+            initial pose: there the scaled residuals equal eq. 4's).
+        power: scalar p in [0, 1]; the residual is s · (Z₀ / z)^p (0: eq. 4 as it is).
+    """
+
+    origin_offset: jax.Array
+    reference: jax.Array
+    power: jax.Array
+
+
+def _with_depth_plane(n: jax.Array, normals: jax.Array, offsets: jax.Array, depths: RayDepths):
+    """The planes (N, 2, 3) / (N, 2) with a third: the plane through o ⊥ n, whose residual is the depth z."""
+    return (jnp.concatenate([normals, n[..., None, :]], axis=-2),
+            jnp.concatenate([offsets, depths.origin_offset[..., None]], axis=-1))
+
+
+def depth_invariant(s: jax.Array, columns, depths: RayDepths):
+    """s (N, 3) and columns (each (..., N, 3)) with the depth z as their third plane → s · σ and d(s · σ) for the
+    two line planes, σ = (Z₀ / z)^p.
+
+    eq. 4's residual is a distance in mm across the ray: moving every point toward the camera shrinks all of them,
+    so rows that disagree (a flow that missed a large motion against SIFT matches that did not) are fitted best by
+    sliding the object along the rays toward the centre (measured: 636 → 263 mm in 10 steps, experiments/large_motion.py).
+    Scaled by Z₀ / z the residual is an angle across the ray times Z₀: a pixel at the reference depth, whatever
+    the depth of the iterate. z is clamped at Z₀ / 10 (no derivative there).
+    """
+    z_raw = s[..., 2]
+    floor = 0.1 * depths.reference
+    z = jnp.maximum(z_raw, floor)
+    p = jnp.asarray(depths.power, s.dtype)
+    sigma = (depths.reference / z) ** p
+    dz_factor = jnp.where((z_raw > floor)[..., None], p * s[..., :2] / z[..., None], 0.0)  # (N, 2)
+    scaled = s[..., :2] * sigma[..., None]
+
+    def column(c):
+        return (c[..., :2] - dz_factor * c[..., 2:3]) * sigma[..., None]
+
+    if isinstance(columns, (list, tuple)):
+        return scaled, [column(c) for c in columns]
+    return scaled, None if columns is None else column(columns)
+
+
 def plane_residuals(
     model: KinematicModel,
     T_world_root: jax.Array,
@@ -79,10 +128,16 @@ def plane_residuals(
     part: jax.Array,
     normals: jax.Array,
     offsets: jax.Array,
+    depths: RayDepths | None = None,
+    n: jax.Array | None = None,
 ) -> jax.Array:
-    """Plane residuals s (N, 2) of eq. 4 at (T_world_root, Θ): Σ_k s_k² = |T(χ)X × n − m|²."""
+    """Plane residuals s (N, 2) of eq. 4 at (T_world_root, Θ): Σ_k s_k² = |T(χ)X × n − m|²; with `depths` (and
+    the rows' ray directions `n`, (N, 3)) each scaled by (Z₀ / z)^p (`depth_invariant`)."""
     a = _world_point_columns(model, part_transforms(model, T_world_root, theta), p_model, part)
-    return _plane_residuals(a, normals, offsets)
+    if depths is None:
+        return _plane_residuals(a, normals, offsets)
+    s = _plane_residuals(a, *_with_depth_plane(n, normals, offsets, depths))
+    return depth_invariant(s, None, depths)[0]
 
 
 def _residuals_and_columns(
@@ -139,6 +194,8 @@ def plane_normal_equations(
     normals: jax.Array,
     offsets: jax.Array,
     weight: jax.Array,
+    depths: RayDepths | None = None,
+    n: jax.Array | None = None,
 ):
     """Gauss-Newton normal equations of eq. 5 at (T_world_root, Θ).
 
@@ -151,12 +208,19 @@ def plane_normal_equations(
     problems of 200 rows (0.49 → 0.56 ms), slower at 464 (2-3.6 → 4.4 ms; the tracker's vmapped
     uses are a handful of hypotheses or parameter sets).
 
-    `weight` is (N,) per correspondence or (N, 2) per plane (`line_planes`' plane weights times it).
+    `weight` is (N,) per correspondence or (N, 2) per plane (`line_planes`' plane weights times it). With `depths`
+    (and the rays' directions `n`) the residuals and their columns are the depth-invariant ones (`depth_invariant`).
 
     Returns:
         H = Σ w JᵀJ (D, D), g = Σ w Jᵀ s (D,), cost = Σ w |s|² (= Σ w |r|² of eq. 4), D = 6 + J.
     """
-    s, root_columns, joint_columns = _residuals_and_columns(model, T_world_root, theta, p_model, part, normals, offsets)
+    if depths is None:
+        s, root_columns, joint_columns = _residuals_and_columns(model, T_world_root, theta, p_model, part, normals, offsets)
+    else:
+        s3, root3, joint3 = _residuals_and_columns(model, T_world_root, theta, p_model, part,
+                                                   *_with_depth_plane(n, normals, offsets, depths))
+        s, root_columns = depth_invariant(s3, root3, depths)
+        joint_columns = None if joint3 is None else depth_invariant(s3, joint3, depths)[1]
     w = jnp.broadcast_to(weight[:, None] if weight.ndim == 1 else weight, s.shape).reshape(-1)
     rows = [jnp.stack([c.reshape(-1) for c in root_columns])]
     if joint_columns is not None:

@@ -32,7 +32,7 @@ from ..geometry import (
 )
 from ._correspondences import Correspondences
 from ._gauss_newton import damped_gauss_newton, solve_implicit
-from ._normal_equations import line_planes, plane_normal_equations, plane_residuals
+from ._normal_equations import RayDepths, line_planes, plane_normal_equations, plane_residuals
 
 # The solver reports the library-wide status codes; `PoseStatus` is kept as its old name.
 PoseStatus = Status
@@ -259,6 +259,7 @@ class PoseProblem(eqx.Module):
         normals, offsets: (N, 2, 3), (N, 2) the two planes through each line (`line_planes`).
         prior_theta, prior_stiffness: (J,) anchor and scalar k of the `JointPrior` (k = 0: none).
         root_anchor, root_stiffness: (4, 4) anchor and (6,) k of the `PosePrior` (k = 0: none).
+        depths: the rows' `RayDepths` when the residuals are depth-invariant (`solve_pose(ray_origins=)`), else None.
     """
 
     model: KinematicModel
@@ -272,6 +273,7 @@ class PoseProblem(eqx.Module):
     root_anchor: jax.Array
     root_stiffness: jax.Array
     has_root_prior: bool = eqx.field(static=True, default=False)
+    depths: RayDepths | None = None
 
 
 def _weighted_residual(y: jax.Array, problem: PoseProblem) -> jax.Array:
@@ -279,7 +281,8 @@ def _weighted_residual(y: jax.Array, problem: PoseProblem) -> jax.Array:
     the joint prior's J rows √k (θ − θ̄) and the pose prior's 6 rows √k ⊙ log(T_anchor⁻¹ T_root)."""
     T_root = se3_exp(y[:6]) @ problem.T_init
     corr = problem.corr
-    s = plane_residuals(problem.model, T_root, y[6:], corr.p_model, corr.part, problem.normals, problem.offsets)
+    s = plane_residuals(problem.model, T_root, y[6:], corr.p_model, corr.part, problem.normals, problem.offsets,
+                        problem.depths, corr.n)
     prior = _safe_sqrt(problem.prior_stiffness) * (y[6:] - problem.prior_theta)
     if not problem.has_root_prior:
         return jnp.concatenate([(s * problem.sqrt_weight).reshape(-1), prior])
@@ -302,7 +305,8 @@ def _gauss_newton_iterate(y0: jax.Array, problem: PoseProblem, config: SolverCon
         T_root, theta = x
         # Looked up at trace time, so experiments/bench_pose.py can swap in the builder it compares.
         H, g, cost = plane_normal_equations(
-            problem.model, T_root, theta, corr.p_model, corr.part, problem.normals, problem.offsets, weight
+            problem.model, T_root, theta, corr.p_model, corr.part, problem.normals, problem.offsets, weight,
+            problem.depths, corr.n
         )
         if problem.has_root_prior:  # pose prior: residual √k ⊙ e, e = log(T_anchor⁻¹ T_root)
             kr = problem.root_stiffness
@@ -433,6 +437,8 @@ def solve_pose(
     cameras: Camera | None = None,
     prior: JointPrior | None = None,
     pose_prior: PosePrior | None = None,
+    ray_origins: jax.Array | None = None,
+    depth_invariance: jax.Array | float = 1.0,
 ) -> PoseSolution:
     """Solve χ = (ξ, Θ) minimising Σ w_i |T(χ) X_i × n_i − m_i|² (eq. 4-5). Jittable and vmappable.
 
@@ -452,6 +458,11 @@ def solve_pose(
             alone cannot tell in front from behind).
         prior: a `JointPrior` on Θ (default none, as the method).
         pose_prior: a `PosePrior` on the root pose (default none, as the method).
+        ray_origins: (C, 3) or (3,) world centres of the cameras the rows' rays leave (`corr.camera` indexes
+            them), or None (eq. 4 as it is). Given, each row's residual is scaled by (Z₀ / Z)^p, its depth along the
+            ray at T_init over its depth at the iterate (p = `depth_invariance`, 0..1): eq. 4 at the start, but
+            sliding the object toward the cameras no longer shrinks every residual, which is how rows that
+            disagree were fitted (`jaxtrack.solve._normal_equations.depth_invariant`).
 
     Returns:
         PoseSolution. Statuses, first cause first: INVALID_INPUT, TOO_FEW (inputs), NONFINITE,
@@ -469,12 +480,22 @@ def solve_pose(
     y0 = jnp.concatenate([jnp.zeros((6,), dtype), theta_safe])
     normals, offsets, plane_weight = line_planes(clean.n, clean.m, clean.normal, clean.tangent_weight)
     weight = weight[:, None] * plane_weight
+    depths = None
+    if ray_origins is not None:
+        origins = jnp.asarray(ray_origins, dtype)
+        if origins.ndim == 2:
+            origins = origins[jnp.clip(clean.camera, 0, origins.shape[0] - 1)]
+        offset = jnp.sum(clean.n * origins, axis=-1)
+        z0 = jnp.sum(clean.n * model_points_world(model, T_init_safe, theta_safe, clean.p_model, clean.part), -1) - offset
+        power = jnp.clip(jnp.asarray(depth_invariance, dtype), 0.0, 1.0)
+        depths = RayDepths(offset, jnp.where(z0 > 0, z0, 1.0), jnp.where(jnp.isfinite(power), power, 0.0))
     J = model.num_joints
     if prior is None or J == 0:
         prior_theta, stiffness = jnp.zeros((J,), dtype), jnp.zeros((), dtype)
     else:
         prior_theta = jnp.broadcast_to(jnp.asarray(prior.theta, dtype), (J,))
-        H0, _, _ = plane_normal_equations(model, T_init_safe, theta_safe, clean.p_model, clean.part, normals, offsets, weight)
+        H0, _, _ = plane_normal_equations(model, T_init_safe, theta_safe, clean.p_model, clean.part, normals, offsets, weight,
+                                          depths, clean.n)
         strength = jnp.asarray(prior.strength, dtype)
         stiffness = _prior_stiffness(H0, jnp.where(jnp.isfinite(strength) & (strength > 0), strength, 0.0))
         stiffness = jnp.where(jnp.isfinite(stiffness), stiffness, 0.0)
@@ -485,7 +506,8 @@ def solve_pose(
         anchor = jnp.asarray(pose_prior.T_anchor, dtype)
         ok = jnp.all(jnp.isfinite(anchor))
         root_anchor = jnp.where(ok, anchor, T_init_safe)
-        H0, _, _ = plane_normal_equations(model, T_init_safe, theta_safe, clean.p_model, clean.part, normals, offsets, weight)
+        H0, _, _ = plane_normal_equations(model, T_init_safe, theta_safe, clean.p_model, clean.part, normals, offsets, weight,
+                                          depths, clean.n)
         pos = lambda v: jnp.maximum(jnp.asarray(v, dtype), 0.0)
         root_stiffness = _root_prior_stiffness(H0, T_init_safe, PosePrior(
             root_anchor, pos(pose_prior.rotation), pos(pose_prior.translation), pos(pose_prior.rotation_abs),
@@ -493,7 +515,7 @@ def solve_pose(
     problem = PoseProblem(
         model=model, corr=clean, T_init=T_init_safe, sqrt_weight=_safe_sqrt(weight), normals=normals, offsets=offsets,
         prior_theta=prior_theta, prior_stiffness=stiffness, root_anchor=root_anchor, root_stiffness=root_stiffness,
-        has_root_prior=pose_prior is not None,
+        has_root_prior=pose_prior is not None, depths=depths,
     )
     if config.backend == "optimistix":
         sol = optx.least_squares(
@@ -513,7 +535,7 @@ def solve_pose(
             status_where(sol.result != optx.RESULTS.successful, Status.SOLVER_FAILED, Status.OK),
         )
         H, _, _ = plane_normal_equations(
-            model, se3_exp(y[:6]) @ T_init_safe, y[6:], clean.p_model, clean.part, normals, offsets, weight
+            model, se3_exp(y[:6]) @ T_init_safe, y[6:], clean.p_model, clean.part, normals, offsets, weight, depths, clean.n
         )
         conditioning = root_conditioning(H)
         finite = jnp.all(jnp.isfinite(y))
