@@ -338,11 +338,13 @@ def test_working_resolution_at_scale_one_gives_the_native_pose(sequence):
         assert np.linalg.norm(native[:3, 3] - working[:3, 3]) < 0.5
 
 
-def test_working_resolution_flow_reaches_a_frame_rate_step():
+def test_working_resolution_flow_reaches_a_large_motion():
     """The flow pyramid at the working resolution reaches the motion of a large frame step. At 96x128 a coarsest
-    level of 16 px left 3 levels, and this 12 px shift (the frame-rate experiment's 20 px / 12° step at S = 4,
-    seen at scale 1.6) came out as (0.09, -1.15) px (measured): the prediction did not move and the tracker lost
-    the rotation (38 % success at S = 4, 100 % with native crops). The tracker's resolved flow settings recover it."""
+    level of 16 px left 3 levels, and a 12 px shift (the frame-rate experiment's 20 px / 12° step at S = 4, seen at
+    scale 1.6) came out as (0.09, -1.15) px: the prediction did not move (frame_rate S = 4: 38 % success). With 8 px
+    a 24 px shift (the large-motion experiment's 30 px in a crop at scale 1.25) came out as (-2.88, 1.82) px
+    (measured), and the flow + SIFT prediction was worse than none (experiments/large_motion.py: all cues 3/8).
+    The tracker's resolved flow settings recover it."""
     import cv2
 
     from jaxtrack.cues.flow import compute_flow
@@ -350,10 +352,10 @@ def test_working_resolution_flow_reaches_a_frame_rate_step():
     from jaxtrack.track._tracker import default_params
 
     rng = np.random.default_rng(0)
-    texture = cv2.GaussianBlur(rng.uniform(0, 255, (160, 200)).astype(np.float32), (0, 0), 2.0)
+    texture = cv2.GaussianBlur(rng.uniform(0, 255, (200, 240)).astype(np.float32), (0, 0), 2.0)
     texture = np.clip((texture - texture.mean()) * 4 + 128, 0, 255)
-    dy, dx = 5, 12
-    first, second = texture[20:116, 20:148], texture[20 - dy:116 - dy, 20 - dx:148 - dx]  # content moves by (dx, dy)
+    dy, dx = 10, 24
+    first, second = texture[40:136, 40:168], texture[40 - dy:136 - dy, 40 - dx:168 - dx]  # content moves by (dx, dy)
     config = TrackerConfig().resolved(False)
     assert config.working_shape == first.shape
     flow = np.asarray(compute_flow(first, second, default_params(rigid_model(), first.shape).flow, config.flow).flow)

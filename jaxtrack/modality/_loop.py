@@ -108,6 +108,8 @@ class RefineSettings(eqx.Module):
         pose_prior_rotation_abs, pose_prior_translation_abs: absolute stiffnesses of the `PosePrior`.
         prior_follows_round: 1: the pose prior pulls toward each round's starting pose (M3T's damping per
             iteration); 0: toward the anchor (the prediction) for the whole frame.
+        depth_invariance: p of each round's solve (`solve_pose(ray_origins=ctx.cameras' centres)`): residuals
+            × (Z₀ / Z)^p; 0: eq. 4 as it is.
     """
 
     settle_motion: jax.Array
@@ -118,6 +120,7 @@ class RefineSettings(eqx.Module):
     pose_prior_rotation_abs: jax.Array = eqx.field(default_factory=lambda: jnp.zeros(()))
     pose_prior_translation_abs: jax.Array = eqx.field(default_factory=lambda: jnp.zeros(()))
     prior_follows_round: jax.Array = eqx.field(default_factory=lambda: jnp.zeros(()))
+    depth_invariance: jax.Array = eqx.field(default_factory=lambda: jnp.zeros(()))
 
 
 class RoundState(eqx.Module):
@@ -174,6 +177,7 @@ def _round(modalities, ctx, contexts, states, frames, params, settings: RefineSe
         pose_prior=PosePrior(jnp.where(settings.prior_follows_round > 0.5, pose.T_world_root, anchor.T_world_root),
                              settings.pose_prior_rotation, settings.pose_prior_translation,
                              settings.pose_prior_rotation_abs, settings.pose_prior_translation_abs),
+        ray_origins=ctx.cameras.center_world, depth_invariance=settings.depth_invariance,
     )
     new = Pose(sol.T_world_root, sol.theta)
     settled = mean_motion(ctx.model, fused, pose, new) < settings.settle_motion

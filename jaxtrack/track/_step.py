@@ -79,7 +79,10 @@ LOSS_WEIGHTS = (-2.995, 2.561, 3.858, 22.900, 11.744, 2.026)
 # The flow pyramid's coarsest level at the working resolution (px, short side). With the default 16 a 96 px crop
 # had 3 levels, one fewer than the native crops it replaced, and the prediction did not reach a 20 px / 12° frame
 # step (frame_rate S = 4: 38 % success, 100 % with 8; tests/test_tracker.py shows the cut-off reach).
-WORKING_FLOW_MIN_SIZE = 8
+# With 8 px (4 levels) a 24 px shift of a 96x128 crop came out as about zero: the large-motion experiment's 30 px /
+# 10° step (24 crop px) left the flow + SIFT prediction worse than none (all cues 3/8 tracked); with 4 px, 8/8
+# (experiments/large_motion.py; README "The flow that missed a large motion").
+WORKING_FLOW_MIN_SIZE = 4
 
 
 @functools.lru_cache(maxsize=64)
@@ -269,6 +272,9 @@ class TrackerParams(eqx.Module):
         rows_per_px: 1: the flow, SIFT and level-set rows' weights count per px² of the full-frame image, as the
             line modality's (`jaxtrack.solve.weights_per_pixel`: × (f / Z)²), so that the cues' balance does not
             depend on the object's distance or the image resolution; 0: per mm² of the Plücker residual (eq. 4).
+        depth_invariant: p in [0, 1] of the prediction's and the refinement's solves (`jaxtrack.solve.solve_pose`'s
+            `depth_invariance`, with the cameras' centres): each row's residual × (Z₀ / Z)^p, so that rows that
+            disagree are not fitted by sliding the object toward the camera; 0: eq. 4 as it is.
     """
 
     weights: CueWeights
@@ -293,6 +299,7 @@ class TrackerParams(eqx.Module):
     loss_weights: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(LOSS_WEIGHTS))
     flow_structure: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(-1.0))
     rows_per_px: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(0.0))
+    depth_invariant: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(0.0))
     uncertain_confidence: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(0.5))
     lost_confidence: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(0.25))
 
@@ -567,7 +574,8 @@ def track_step(
     if motion_idx:
         motion = [modalities[i] for i in motion_idx]
         fused = fuse_rows(motion, [data[i] for i in motion_idx], params, prediction=True)
-        pred = solve_pose(model, fused, T_t, theta_t, SolverConfig(max_steps=config.prediction_steps))
+        pred = solve_pose(model, fused, T_t, theta_t, SolverConfig(max_steps=config.prediction_steps),
+                          ray_origins=setup.cameras.center_world, depth_invariance=params.depth_invariant)
         use = is_usable(pred.status)
         predicted = use
         T_pred = jnp.where(use, pred.T_world_root, T_t)
@@ -584,7 +592,7 @@ def track_step(
         settings = RefineSettings(params.region.settle_motion, params.region.joint_prior,
                                   params.pose_prior_rotation, params.pose_prior_translation, params.render_reuse_px,
                                   params.pose_prior_rotation_abs, params.pose_prior_translation_abs,
-                                  params.prior_follows_round)
+                                  params.prior_follows_round, params.depth_invariant)
         res = refine_rounds(modalities, ctx, state.modalities, data, Pose(T_pred, theta_pred.astype(dtype)), params, settings,
                             rounds, steps, min_rounds=min_rounds, contexts=contexts)
         T_new, theta_new = res.pose.T_world_root, jnp.clip(res.pose.theta, params.theta_lower, params.theta_upper)

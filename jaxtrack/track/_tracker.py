@@ -81,6 +81,9 @@ TRACKER_FLOW_FACTOR = 0.1
 FLOW_STRUCTURE = 4.0
 # The flow, SIFT and level-set rows' weights per px² as the lines' (`TrackerParams.rows_per_px`; 0: per mm²).
 ROWS_PER_PX = 1.0
+# The prediction's and the refinement's residuals × Z₀ / Z (`TrackerParams.depth_invariant`; 0: eq. 4 as it is): rows
+# that disagree were fitted by sliding the object toward the camera (README "Residuals that shrink toward the camera").
+DEPTH_INVARIANT = 1.0
 
 
 def _as_array(scales):
@@ -208,6 +211,7 @@ def default_params(
         lost_confidence=jnp.asarray(0.25, dtype),
         flow_structure=jnp.asarray(FLOW_STRUCTURE, dtype),
         rows_per_px=jnp.asarray(ROWS_PER_PX, dtype),
+        depth_invariant=jnp.asarray(DEPTH_INVARIANT, dtype),
     )
 
 
