@@ -46,6 +46,15 @@ def _projected_centre(K, T_cam_obj) -> np.ndarray:
     return p[:2] / p[2]
 
 
+def projection_error_px(K, vertices, T_cam_obj, T_true) -> float:
+    """Mean image distance (px) of the model's vertices projected at `T_cam_obj` and at the truth (the 2D projection
+    error): rotation and translation in one number, in the image the tracker sees."""
+    def project(T):
+        p = (vertices @ T[:3, :3].T + T[:3, 3]) @ K.T
+        return p[:, :2] / p[:, 2:3]
+    return float(np.mean(np.linalg.norm(project(T_cam_obj) - project(T_true), axis=1)))
+
+
 class TwoFrameTrials:
     """One `Tracker` per cue set, reused over the trials (same mesh and camera: its raster plan, atlas and
     crop size class carry over, so a cue set compiles its step once unless a trial needs a larger crop)."""
@@ -59,7 +68,10 @@ class TwoFrameTrials:
         # Built as `track_sequence` builds them, so that the compiled step is the same program.
         rig = stack_cameras([make_camera(view.K, view.width, view.height, view.T_cam_world[:3, :3], view.T_cam_world[:3, 3])])
         kwargs = {} if margin is None else {"margin": margin}
-        self.tracker = Tracker(load_mesh(seq.model_paths[1]), rig, config=TrackerConfig(cues=cues), **kwargs)
+        mesh = load_mesh(seq.model_paths[1])
+        self.tracker = Tracker(mesh, rig, config=TrackerConfig(cues=cues), **kwargs)
+        vertices = np.asarray(mesh.vertices, np.float64)
+        self.vertices = vertices[np.unique(np.linspace(0, len(vertices) - 1, min(len(vertices), 2000)).astype(int))]
 
     def run(self, seq) -> dict:
         from jaxtrack.track import pose_errors
@@ -76,7 +88,10 @@ class TwoFrameTrials:
         T_pred = T_cam_world @ np.asarray(result.T_pred, np.float64)
         T_final = T_cam_world @ np.asarray(result.T_world_root, np.float64)
         (rot_p, rot_f), (tr_p, tr_f) = pose_errors(np.stack([T_pred, T_final]), np.stack([gt[1], gt[1]]))
+        K = np.asarray(view.K, np.float64)
         return {"pred_rot": float(rot_p), "pred_trans": float(tr_p), "final_rot": float(rot_f), "final_trans": float(tr_f),
+                "pred_px": projection_error_px(K, self.vertices, T_pred, gt[1]),
+                "none_px": projection_error_px(K, self.vertices, gt[0], gt[1]),
                 "T_pred": T_pred, "T_final": T_final, "status": int(result.status), "step_s": step_s,
                 "compiled": tp._num_traces() != traces}
 
@@ -115,15 +130,16 @@ def report(command, args, preset, base, motions, cue_sets, results, diameter, sk
          f"{diameter:.0f} mm. Success: final rotation error ≤ 10° and translation error ≤ 10 % of the diameter "
          f"({0.1 * diameter:.0f} mm)."),
         "",
-        "| cues | trials | success | prediction rot ° (mean / median) | prediction trans mm (mean / median) | final rot ° (mean / median) | final trans mm (mean / median) | ms / step | compiles |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| cues | trials | success | prediction rot ° (mean / median) | prediction trans mm (mean / median) | prediction px (mean / median) | prediction better than none | final rot ° (mean / median) | final trans mm (mean / median) | ms / step | compiles |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for cues in cue_sets:
         rs = results.get(cues, [])
         if not rs:
-            lines.append(f"| {cues} | 0 | {'not run (time)' if cues in skipped else 'failed'} | | | | | | |")
+            lines.append(f"| {cues} | 0 | {'not run (time)' if cues in skipped else 'failed'} | | | | | | | | |")
             continue
-        a = {k: np.array([r[k] for r in rs]) for k in ("pred_rot", "pred_trans", "final_rot", "final_trans")}
+        a = {k: np.array([r[k] for r in rs]) for k in ("pred_rot", "pred_trans", "final_rot", "final_trans", "pred_px", "none_px")}
+        better = int(np.sum(a["pred_px"] < a["none_px"]))
         ok = (a["final_rot"] <= 10) & (a["final_trans"] <= 0.1 * diameter)
         steps = [r["step_s"] for r in rs if not r["compiled"]]
         pred_note = " (frame-1 pose)" if "flow" not in cues and "sift" not in cues else ""
@@ -132,6 +148,7 @@ def report(command, args, preset, base, motions, cue_sets, results, diameter, sk
             f"| {cues} | {len(rs)} | {100 * ok.mean():.0f} % ({ok.sum()}/{len(rs)}) | "
             f"{a['pred_rot'].mean():.2f} / {np.median(a['pred_rot']):.2f}{pred_note} | "
             f"{a['pred_trans'].mean():.1f} / {np.median(a['pred_trans']):.1f} | "
+            f"{a['pred_px'].mean():.1f} / {np.median(a['pred_px']):.1f} | {better}/{len(rs)} | "
             f"{a['final_rot'].mean():.2f} / {np.median(a['final_rot']):.2f} | "
             f"{a['final_trans'].mean():.1f} / {np.median(a['final_trans']):.1f} | {ms} | {sum(r['compiled'] for r in rs)} |"
         )
@@ -154,7 +171,10 @@ def report(command, args, preset, base, motions, cue_sets, results, diameter, sk
         ("- Persistent XLA compile cache on (~/.cache/jaxtrack/xla, as `jaxtrack track` uses it): compiles counts the "
          "steps that traced a new program; a cache hit loads it instead of compiling." if not args.quick else ""),
         ("- Prediction: the pose solved from the flow and SIFT correspondences alone (`FrameResult.T_pred`); the "
-         "region cue has no prediction, so its row shows the error of the frame-1 pose, i.e. the motion itself."),
+         "region cue has no prediction, so its row shows the error of the frame-1 pose, i.e. the motion itself. "
+         "prediction px: the mean image distance of the model's vertices projected at the prediction and at the truth "
+         "(rotation and translation in one number); better than none: trials whose prediction is closer than the "
+         "frame-1 pose by that measure."),
         (f"- Scale {args.scale:g} of 640x480 with the focal length scaled alike; the motion is set in the tracked image "
          f"(--step-px {args.step_px:g}, --step-deg {args.step_deg:g}; the generator's step also moves a little in depth, "
          "so the measured image motion is below the setting). The tracker's crop margin is "
