@@ -165,8 +165,11 @@ def test_depth_invariant_solve_does_not_slide_the_object_toward_the_camera():
     depth = lambda T: float(np.linalg.norm(np.asarray(T)[:3, 3] - centre))
     config = SolverConfig(max_steps=50)
     plain = solve_pose(model, corr, T0, config=config)
-    invariant = solve_pose(model, corr, T0, config=config, ray_origins=scene.cameras.center_world)
-    off = solve_pose(model, corr, T0, config=config, ray_origins=scene.cameras.center_world, depth_invariance=0.0)
+    # p as arrays: one compiled solve for both.
+    invariant = solve_pose(model, corr, T0, config=config, ray_origins=scene.cameras.center_world,
+                           depth_invariance=jnp.asarray(1.0))
+    off = solve_pose(model, corr, T0, config=config, ray_origins=scene.cameras.center_world,
+                     depth_invariance=jnp.asarray(0.0))
     assert jt.is_usable(plain.status) and jt.is_usable(invariant.status)
     assert depth(plain.T_world_root) < 0.7 * depth(T0)  # the collapse this option exists for
     assert abs(depth(invariant.T_world_root) / depth(T0) - 1.0) < 0.15

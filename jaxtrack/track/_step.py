@@ -81,7 +81,7 @@ LOSS_WEIGHTS = (-2.995, 2.561, 3.858, 22.900, 11.744, 2.026)
 # step (frame_rate S = 4: 38 % success, 100 % with 8; tests/test_tracker.py shows the cut-off reach).
 # With 8 px (4 levels) a 24 px shift of a 96x128 crop came out as about zero: the large-motion experiment's 30 px /
 # 10° step (24 crop px) left the flow + SIFT prediction worse than none (all cues 3/8 tracked); with 4 px, 8/8
-# (experiments/large_motion.py; README "The flow that missed a large motion").
+# (experiments/large_motion.py; README "Residuals that shrink toward the camera, and a flow that missed a large motion").
 WORKING_FLOW_MIN_SIZE = 4
 
 

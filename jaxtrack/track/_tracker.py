@@ -82,7 +82,7 @@ FLOW_STRUCTURE = 4.0
 # The flow, SIFT and level-set rows' weights per px² as the lines' (`TrackerParams.rows_per_px`; 0: per mm²).
 ROWS_PER_PX = 1.0
 # The prediction's and the refinement's residuals × Z₀ / Z (`TrackerParams.depth_invariant`; 0: eq. 4 as it is): rows
-# that disagree were fitted by sliding the object toward the camera (README "Residuals that shrink toward the camera").
+# that disagree were fitted by sliding the object toward the camera (README "Residuals that shrink toward the camera, ...").
 DEPTH_INVARIANT = 1.0
 
 
