@@ -148,7 +148,7 @@ def report(command, args, preset, base, motions, cue_sets, results, diameter, sk
             f"| {cues} | {len(rs)} | {100 * ok.mean():.0f} % ({ok.sum()}/{len(rs)}) | "
             f"{a['pred_rot'].mean():.2f} / {np.median(a['pred_rot']):.2f}{pred_note} | "
             f"{a['pred_trans'].mean():.1f} / {np.median(a['pred_trans']):.1f} | "
-            f"{a['pred_px'].mean():.1f} / {np.median(a['pred_px']):.1f} | {better}/{len(rs)} | "
+            f"{a['pred_px'].mean():.1f} / {np.median(a['pred_px']):.1f} | {'-' if pred_note else f'{better}/{len(rs)}'} | "
             f"{a['final_rot'].mean():.2f} / {np.median(a['final_rot']):.2f} | "
             f"{a['final_trans'].mean():.1f} / {np.median(a['final_trans']):.1f} | {ms} | {sum(r['compiled'] for r in rs)} |"
         )
