@@ -119,12 +119,15 @@ def run(point_counts, noises, trials, batch, seed=0):
     return rows, throughput
 
 
-def legacy_plane_normal_equations(model, T_world_root, theta, p_model, part, normals, offsets, weight):
-    """The builder of commit 33dcef2, kept here only as the benchmark's "before" (same outputs).
+def legacy_plane_normal_equations(model, T_world_root, theta, p_model, part, normals, offsets, weight, depths=None, n=None):
+    """The builder of commit 33dcef2, kept here only as the benchmark's "before" (same outputs; eq. 4 only: the
+    benchmark's solves pass no `ray_origins`, so `depths` is None).
 
     Separate (N, 2) columns, a Python loop over joints and D(D+1)/2 traced products for H: the traced
     program, and with it XLA's compile time, grows with D² = (6 + J)².
     """
+    if depths is not None:
+        raise ValueError("legacy_plane_normal_equations: the 33dcef2 builder has no depth-invariant residuals")
     T_parts = part_transforms(model, T_world_root, theta)
     T = T_parts[0] if model.num_parts == 1 else T_parts[part]
     x, y, z = p_model[..., 0], p_model[..., 1], p_model[..., 2]

@@ -274,7 +274,8 @@ class TrackerParams(eqx.Module):
             depend on the object's distance or the image resolution; 0: per mm² of the Plücker residual (eq. 4).
         depth_invariant: p in [0, 1] of the prediction's and the refinement's solves (`jaxtrack.solve.solve_pose`'s
             `depth_invariance`, with the cameras' centres): each row's residual × (Z₀ / Z)^p, so that rows that
-            disagree are not fitted by sliding the object toward the camera; 0: eq. 4 as it is.
+            disagree are not fitted by sliding the object toward the camera; 0: eq. 4 as it is (the tracker's
+            default for chains; 1 for rigid objects).
     """
 
     weights: CueWeights
