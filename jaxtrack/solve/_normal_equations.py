@@ -219,8 +219,8 @@ def plane_normal_equations(
     else:
         s3, root3, joint3 = _residuals_and_columns(model, T_world_root, theta, p_model, part,
                                                    *_with_depth_plane(n, normals, offsets, depths))
-        s, root_columns = depth_invariant(s3, root3, depths)
-        joint_columns = None if joint3 is None else depth_invariant(s3, joint3, depths)[1]
+        s, columns = depth_invariant(s3, list(root3) + ([] if joint3 is None else [joint3]), depths)
+        root_columns, joint_columns = columns[:6], (None if joint3 is None else columns[6])
     w = jnp.broadcast_to(weight[:, None] if weight.ndim == 1 else weight, s.shape).reshape(-1)
     rows = [jnp.stack([c.reshape(-1) for c in root_columns])]
     if joint_columns is not None:
