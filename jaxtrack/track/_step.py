@@ -269,6 +269,9 @@ class TrackerParams(eqx.Module):
             frame is more likely beyond 5 cm / 5° than not).
         flow_structure: k of the flow's structure factor g = λ_min / (λ_min + k σ_n² + 1) on eq. 8's confidence
             (`jaxtrack.cues.flow.structure_confidence`: the image must pin the flow); negative: off (the paper's c).
+        flow_limb_slope: where the structure factor is on, no structure counts within 2 px of the limbs of the render
+            at χ_t: pixels whose surface slope |ΔZ|·f/Z exceeds this (`jaxtrack.cues.flow.limb_pixels`; tan 80° = 5.67,
+            the tracker's default for rigid objects); ≤ 0: off (chains' default).
         rows_per_px: 1: the flow, SIFT and level-set rows' weights count per px² of the full-frame image, as the
             line modality's (`jaxtrack.solve.weights_per_pixel`: × (f / Z)²), so that the cues' balance does not
             depend on the object's distance or the image resolution; 0: per mm² of the Plücker residual (eq. 4).
@@ -299,6 +302,7 @@ class TrackerParams(eqx.Module):
     line_learning_rate: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(0.2))
     loss_weights: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(LOSS_WEIGHTS))
     flow_structure: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(-1.0))
+    flow_limb_slope: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(-1.0))
     rows_per_px: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(0.0))
     depth_invariant: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(0.0))
     uncertain_confidence: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(0.5))

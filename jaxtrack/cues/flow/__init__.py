@@ -27,5 +27,6 @@ from ._solver import motion_tensor as motion_tensor
 from ._solver import prepare_image as prepare_image
 from ._solver import prepare_inputs as prepare_inputs
 from ._solver import refine_flow as refine_flow
+from ._structure import limb_pixels as limb_pixels
 from ._structure import noise_sigma as noise_sigma
 from ._structure import structure_confidence as structure_confidence

@@ -3,7 +3,8 @@
 A motion modality: its rows are made once per frame in `start` (the flow of the crop of frames t and
 t+1, restricted to the model silhouette at χ_t, with r(x) of frame t as the data weight) and enter both
 the prediction and every refinement round. Their confidence is eq. 8's times the structure factor of frame t's
-crop (`structure_confidence`, `TrackerParams.flow_structure`) where that is on. Weight rule of Section V: w_i = c_i · n_ref / n_OF, where
+crop (`structure_confidence`, `TrackerParams.flow_structure`) where that is on, with no structure counted near the
+limbs of the render at χ_t (`limb_pixels`, `TrackerParams.flow_limb_slope`). Weight rule of Section V: w_i = c_i · n_ref / n_OF, where
 n_ref is n_C in the refinement and n_OF in the prediction, per px² of the image like the lines' rows
 (`TrackerParams.rows_per_px`, `jaxtrack.solve.weights_per_pixel`).
 """
@@ -20,7 +21,7 @@ from ...solve import Correspondences, Cue, weights_per_pixel
 from ._api import FlowConfig
 from ._correspondences import flow_correspondences
 from ._solver import flow_core
-from ._structure import structure_confidence
+from ._structure import limb_pixels, structure_confidence
 
 
 def _flatten_cameras(corr: Correspondences) -> Correspondences:
@@ -58,7 +59,12 @@ class OpticalFlow(Modality):
             ctx.previous_crops, ctx.crops, ctx.data_weight, sil)
         usable = sil & (ctx.data_weight > 0.5) & (flow.status == Status.OK)[:, None, None]
         k = jnp.asarray(params.flow_structure, dtype)
-        pinned = jax.vmap(lambda im: structure_confidence(im.astype(dtype), jnp.maximum(k, 0.0)))(ctx.previous_crops)
+        max_slope = jnp.asarray(params.flow_limb_slope, dtype)
+        # Limbs at χ_t (the render the rows sample), none where the parameter is off (not positive).
+        limbs = jax.vmap(lambda d, m, cam: limb_pixels(d, m, cam.K[0, 0], max_slope) & (max_slope > 0))(
+            ren.depth, sil, ctx.crop_cameras)
+        pinned = jax.vmap(lambda im, lb: structure_confidence(im.astype(dtype), jnp.maximum(k, 0.0), limbs=lb))(
+            ctx.previous_crops, limbs)
         confidence = flow.confidence * jnp.where(k < 0, 1.0, pinned)
 
         rows = jax.vmap(

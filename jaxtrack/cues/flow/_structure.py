@@ -13,6 +13,15 @@ confidence by
 near 1 on strong texture and corners, 0 on homogeneous regions and along straight edges (the aperture problem), with σ_n the
 image noise (Immerkær's estimate, from the Laplacian difference of the crop) so that noise alone does not count
 as texture: a pure noise image has λ_min ≈ 0.65 σ_n² (the 5-point derivative stencil), g ≈ 0.65 / (0.65 + k).
+
+Near a limb (where a smooth surface turns away from the camera: its occluding contour, also where a part of the object
+occludes another) the image's structure does not belong to a point of the surface: the contour is where the view grazes
+the surface, and it slides over the surface whenever the object turns relative to the camera (a body of revolution
+turning about its axis keeps its outline while its surface moves). The edge against what lies behind is strong
+structure there, so g was high on flow rows that pinned the object where it was: the flat teapot on the turntable
+drifted 1° per frame with the lines and flow, not with the lines alone. `limb_pixels` finds those pixels in the render
+at χ_t (the surface's slope from the depth map), and `structure_confidence(..., limbs=)` counts no gradient within two
+pixels of them (the derivative stencil's reach).
 """
 
 from __future__ import annotations
@@ -38,13 +47,55 @@ def noise_sigma(grey) -> jax.Array:
     return jnp.sqrt(jnp.pi / 2.0) * jnp.sum(jnp.abs(acc)) / (6.0 * (w - 2) * (h - 2))
 
 
-def structure_confidence(image, noise_factor, rho: float = 1.5) -> jax.Array:
+def limb_pixels(depth, silhouette, focal, max_slope) -> jax.Array:
+    """(H, W) bool: silhouette pixels where the surface turns away from the camera (a limb), from the rendered depth.
+
+    The slope |ΔZ| · f / Z of a one-pixel step (the depth change over the pixel's lateral size Z / f: the tangent of
+    the angle between the surface and the image plane, 0 facing the camera) along either image axis, the larger of
+    the two one-sided differences whose neighbour is on the silhouette; a limb where it exceeds `max_slope`. Read
+    from the pixel grid, the step underestimates the slope at a smooth outline: with tan 80° = 5.67 (the tracker's)
+    a sphere 60 px across has limbs on some of its outermost pixels, with tan 70° on all of them. A depth jump inside
+    the silhouette (one part in front of another) is a limb on both sides at any threshold that its size exceeds.
+
+    Args:
+        depth: (H, W) rendered camera-frame depth (any value off the silhouette); silhouette: (H, W) bool;
+        focal: the camera's focal length in pixels; max_slope: scalar (an array: sweeping it does not recompile;
+            ≤ 0 marks every pixel with a neighbour at another depth).
+    """
+    silhouette = jnp.asarray(silhouette, bool)
+    z = jnp.where(silhouette, jnp.asarray(depth), 0.0)
+    h, w = z.shape
+    slopes = []
+    for axis, n in ((0, h), (1, w)):
+        index = jnp.arange(n)[:, None] if axis == 0 else jnp.arange(n)[None, :]
+        step = jnp.zeros_like(z)
+        for shift, keep in ((-1, index < n - 1), (1, index > 0)):  # the next and the previous pixel along the axis
+            on = jnp.roll(silhouette, shift, axis) & keep
+            step = jnp.maximum(step, jnp.where(on, jnp.abs(jnp.roll(z, shift, axis) - z), 0.0))
+        slopes.append(step)
+    slope = jnp.maximum(*slopes) * focal / jnp.maximum(z, 1e-6)
+    return silhouette & (slope > max_slope)
+
+
+def _within(mask, reach: int) -> jax.Array:
+    """(H, W) bool: pixels within `reach` px (Chebyshev) of a pixel of `mask` (dilation)."""
+    side = 2 * reach + 1
+    return jax.lax.reduce_window(jnp.asarray(mask, jnp.int32), np.int32(0), jax.lax.max, (side, side), (1, 1), "SAME") > 0
+
+
+def structure_confidence(image, noise_factor, rho: float = 1.5, limbs=None) -> jax.Array:
     """(H, W) g(x) ∈ [0, 1) of an (H, W) or (H, W, C) image (0-255): λ_min / (λ_min + k σ_n² + 1) of the structure
-    tensor smoothed at `rho` px (grey: the channels' mean), k = `noise_factor` (an array: 0 keeps only the +1)."""
+    tensor smoothed at `rho` px (grey: the channels' mean), k = `noise_factor` (an array: 0 keeps only the +1).
+
+    limbs: (H, W) bool or None: `limb_pixels` of the image; gradients within 2 px of one (the 5-point stencil's
+    reach) count as no structure."""
     image = jnp.asarray(image)
     grey = image if image.ndim == 2 else jnp.mean(image, axis=-1)
     gx, gy = image_gradients(grey[..., None])
     gx, gy = gx[..., 0], gy[..., 0]
+    if limbs is not None:
+        near = _within(limbs, 2)
+        gx, gy = jnp.where(near, 0.0, gx), jnp.where(near, 0.0, gy)
     jxx, jxy, jyy = (gaussian_blur(a, rho) for a in (gx * gx, gx * gy, gy * gy))
     half_trace = 0.5 * (jxx + jyy)
     lam_min = jnp.maximum(half_trace - jnp.sqrt(jnp.maximum((0.5 * (jxx - jyy)) ** 2 + jxy**2, 0.0)), 0.0)
