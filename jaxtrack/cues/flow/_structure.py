@@ -19,7 +19,7 @@ occludes another) the image's structure does not belong to a point of the surfac
 the surface, and it slides over the surface whenever the object turns relative to the camera (a body of revolution
 turning about its axis keeps its outline while its surface moves). The edge against what lies behind is strong
 structure there, so g was high on flow rows that pinned the object where it was: the flat teapot on the turntable
-drifted 1° per frame with the lines and flow, not with the lines alone. `limb_pixels` finds those pixels in the render
+drifted about 0.4° a frame with the lines and flow, not with the lines alone. `limb_pixels` finds those pixels in the render
 at χ_t (the surface's slope from the depth map), and `structure_confidence(..., limbs=)` counts no gradient within two
 pixels of them (the derivative stencil's reach).
 """
