@@ -94,9 +94,9 @@ def _with_depth_plane(n: jax.Array, normals: jax.Array, offsets: jax.Array, dept
             jnp.concatenate([offsets, depths.origin_offset[..., None]], axis=-1))
 
 
-def depth_invariant(s: jax.Array, columns, depths: RayDepths):
-    """s (N, 3) and columns (each (..., N, 3)) with the depth z as their third plane → s · σ and d(s · σ) for the
-    two line planes, σ = (Z₀ / z)^p.
+def depth_invariant(s: jax.Array, columns: list, depths: RayDepths):
+    """s (N, 3) and a list of columns (each (..., N, 3); empty for the residuals alone) with the depth z as their
+    third plane → s · σ and the list of d(s · σ) for the two line planes, σ = (Z₀ / z)^p.
 
     eq. 4's residual is a distance in mm across the ray: moving every point toward the camera shrinks all of them,
     so rows that disagree (a flow that missed a large motion against SIFT matches that did not) are fitted best by
@@ -115,9 +115,7 @@ def depth_invariant(s: jax.Array, columns, depths: RayDepths):
     def column(c):
         return (c[..., :2] - dz_factor * c[..., 2:3]) * sigma[..., None]
 
-    if isinstance(columns, (list, tuple)):
-        return scaled, [column(c) for c in columns]
-    return scaled, None if columns is None else column(columns)
+    return scaled, [column(c) for c in columns]
 
 
 def plane_residuals(
@@ -137,7 +135,7 @@ def plane_residuals(
     if depths is None:
         return _plane_residuals(a, normals, offsets)
     s = _plane_residuals(a, *_with_depth_plane(n, normals, offsets, depths))
-    return depth_invariant(s, None, depths)[0]
+    return depth_invariant(s, [], depths)[0]
 
 
 def _residuals_and_columns(
