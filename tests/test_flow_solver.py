@@ -1,5 +1,6 @@
 """The flow minimiser: known motions, occlusion weights, convergence, consistency, ROI, compile counts."""
 
+import dataclasses
 import itertools
 
 import equinox as eqx
@@ -423,3 +424,53 @@ def test_solver_minimises_the_energy_it_is_given(separate):
     assert g1 < 1e-2 * g0
     e = lambda d: float(linearised_flow_energy(d, w0, i1, i2, params))
     assert e(w1 - w0) < e(jnp.zeros_like(w0))
+
+
+def test_shared_coarse_levels_give_the_same_flow():
+    """`FlowConfig.shared_levels_from`: the coarse levels as one compiled level on a padded grid give the flow of
+    the unrolled pyramid (to rounding), for a motion the coarse levels must find."""
+    sample = _texture(3)
+    x, y = _grid()
+    shift = np.array([4.5, -3.0])
+    img1, img2 = sample(x, y), sample(x - shift[0], y - shift[1])
+    unrolled = compute_flow(img1, img2, PARAMS, CFG)  # Ω1 the whole frame: the padded levels' borders matter
+    shared_cfg = dataclasses.replace(CFG, shared_levels_from=1)
+    assert len(pyramid_shapes(H, W, CFG.eta, CFG.min_size, CFG.max_levels)) - 1 >= 2  # two or more levels share
+    shared = compute_flow(img1, img2, PARAMS, shared_cfg)
+    assert _epe(unrolled.flow, shift, _interior(img1.shape, 12)) < 0.1  # the motion was found at all
+    np.testing.assert_allclose(np.asarray(shared.flow), np.asarray(unrolled.flow), atol=2e-3)
+
+
+@pytest.mark.parametrize("src,dst", [((4, 6), (8, 12)), ((8, 10), (16, 20)), ((16, 20), (30, 38)), ((6, 8), (6, 8))])
+def test_flow_resize_with_sizes_as_data_matches_the_static_one(src, dst):
+    from jaxtrack.image import upsample_flow
+
+    rng = np.random.default_rng(0)
+    grid = (32, 40)
+    flow = rng.normal(size=(*src, 2)).astype(np.float32)
+    padded = np.zeros((*grid, 2), np.float32)
+    padded[: src[0], : src[1]] = flow
+    out = _solver._resize_flow_within(jnp.asarray(padded), jnp.asarray(src, jnp.int32), jnp.asarray(dst, jnp.int32))
+    np.testing.assert_allclose(np.asarray(out)[: dst[0], : dst[1]], np.asarray(upsample_flow(jnp.asarray(flow), dst)),
+                               atol=1e-5)
+
+
+def test_sampling_within_a_size_equals_sampling_the_cropped_image():
+    from jaxtrack.image import sample_bilinear
+
+    rng = np.random.default_rng(1)
+    img = rng.uniform(0, 255, (20, 30, 2)).astype(np.float32)
+    x, y = rng.uniform(-3, 25, 50).astype(np.float32), rng.uniform(-3, 18, 50).astype(np.float32)
+    crop, inside = sample_bilinear(jnp.asarray(img[:14, :22]), x, y)
+    within, inside_w = sample_bilinear(jnp.asarray(img), x, y, (jnp.asarray(14), jnp.asarray(22)))
+    np.testing.assert_allclose(np.asarray(within), np.asarray(crop), rtol=1e-6)
+    np.testing.assert_array_equal(np.asarray(inside_w), np.asarray(inside))
+
+
+def test_derivative_stack_of_a_padded_level_equals_that_of_the_level():
+    rng = np.random.default_rng(2)
+    level = rng.uniform(0, 255, (10, 14, 1)).astype(np.float32)
+    padded = np.pad(level, ((0, 6), (0, 10), (0, 0)), mode="edge")
+    out = _solver.derivative_stack(jnp.asarray(padded), (jnp.asarray(10), jnp.asarray(14)))
+    np.testing.assert_allclose(np.asarray(out)[:10, :14], np.asarray(_solver.derivative_stack(jnp.asarray(level))),
+                               rtol=1e-5, atol=1e-3)

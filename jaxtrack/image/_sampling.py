@@ -5,12 +5,14 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 
-def sample_bilinear(img, x, y):
+def sample_bilinear(img, x, y, size=None):
     """img at real positions (x, y): (H, W, C) img, x and y of any shape S → (S + (C,), S mask).
 
     Positions are clamped to the image (border replication); the mask says which lay inside.
+    With `size` = (h, w) (integer scalars, may be traced) only the top-left h x w part of img is the
+    image: positions are clamped to it and the mask says which lay inside it (the rest is padding).
     """
-    h, w = img.shape[:2]
+    h, w = img.shape[:2] if size is None else size
     inside = (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)
     x = jnp.clip(x, 0, w - 1)
     y = jnp.clip(y, 0, h - 1)

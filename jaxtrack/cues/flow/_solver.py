@@ -11,8 +11,13 @@ Following Brox, Bruhn, Papenberg and Weickert (ECCV 2004), Section 3:
   (du, dv) from its four neighbours; all pixels of one colour update at once, which is the form that
   vectorises on XLA:CPU.
 
-Pyramid levels are unrolled in Python (their shapes differ); every loop inside a level is a
-`lax.fori_loop` with a static trip count, so one image size compiles once.
+Pyramid levels are unrolled in Python (their shapes differ), each its own copy of the solver in the
+compiled program (about 2.5 s of XLA:CPU compile per level); every loop inside a level is a
+`lax.fori_loop` with a static trip count, so one image size compiles once. With
+`FlowConfig.shared_levels_from` = k the levels from k on (the coarse ones) are instead one compiled level
+in a `lax.fori_loop` over the levels, each padded to level k's shape with its true size as data
+(edge-replicated images, sampling clamped to the true size): the same flow to rounding, fewer compiled
+levels, at the price of solving the coarse levels on the larger padded grid.
 
 The smoothness discretisation is exactly the one of `local_flow_energy` (forward differences, a
 Ψ2' per pixel shared by its right and lower edges, edges only between two pixels of Ω1), so the
@@ -69,6 +74,11 @@ class FlowConfig(eqx.Module):
             it is not part of eq. 6, so the result is no longer an exact fixed point of the energy.
             Inside Ω1 only: neighbours outside Ω1 count as the centre pixel's own value.
         median_every_warp: filter after every warp (Sun et al.) or only after each level's last warp.
+        shared_levels_from: 0: every pyramid level is its own compiled copy of the solver. k ≥ 1: the
+            levels k, k+1, ... (coarser) share one compiled level, run in a loop on level k's shape (see
+            the module docstring). The flow is the same to rounding; compile time drops by about the
+            shared levels' share, run time grows by the padding (k = 2 at η = ½: the coarse levels cost
+            4 x 1/16 of the finest level instead of 1/16 + 1/64 + ...).
     """
 
     eta: float = eqx.field(static=True, default=0.5)
@@ -82,6 +92,7 @@ class FlowConfig(eqx.Module):
     finest_warps: int = eqx.field(static=True, default=0)
     median: int = eqx.field(static=True, default=0)
     median_every_warp: bool = eqx.field(static=True, default=True)
+    shared_levels_from: int = eqx.field(static=True, default=0)
 
     def __check_init__(self):
         if not 0.0 < self.eta < 1.0:
@@ -93,6 +104,8 @@ class FlowConfig(eqx.Module):
         for name in ("min_size", "max_levels", "warps", "lagged", "sor_iters"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"FlowConfig.{name} must be ≥ 1, got {getattr(self, name)}")
+        if int(self.shared_levels_from) < 0:
+            raise ValueError(f"FlowConfig.shared_levels_from must be ≥ 0 (0 = off), got {self.shared_levels_from}")
 
 
 def middlebury_config() -> FlowConfig:
@@ -163,9 +176,23 @@ def prepare_image(img: ArrayLike, sigma: float, dtype: DTypeLike = jnp.float32) 
     return gaussian_blur(img.astype(dtype), sigma)
 
 
-def derivative_stack(img2: jax.Array) -> jax.Array:
-    """[I2, ∂x I2, ∂y I2, ∂xx I2, ∂xy I2, ∂yy I2] on I2's grid (5-point stencil), (H, W, 6C)."""
+def _replicate_beyond(a: jax.Array, size) -> jax.Array:
+    """(H, W, ...) a with the rows ≥ h and columns ≥ w replaced by copies of row h − 1 and column w − 1:
+    the top-left (h, w) part edge-replicated over the rest (`size` = (h, w), may be traced)."""
+    rows = jnp.minimum(jnp.arange(a.shape[0]), size[0] - 1)
+    cols = jnp.minimum(jnp.arange(a.shape[1]), size[1] - 1)
+    return jnp.take(jnp.take(a, rows, axis=0), cols, axis=1)
+
+
+def derivative_stack(img2: jax.Array, size=None) -> jax.Array:
+    """[I2, ∂x I2, ∂y I2, ∂xx I2, ∂xy I2, ∂yy I2] on I2's grid (5-point stencil), (H, W, 6C).
+
+    With `size` = (h, w) only the top-left h x w part is the image and the rest edge-replicates it (a
+    padded pyramid level): the first derivatives are replicated the same way before the second, so the
+    stack on the image part equals that of the unpadded image."""
     g2x, g2y = image_gradients(img2)
+    if size is not None:
+        g2x, g2y = _replicate_beyond(g2x, size), _replicate_beyond(g2y, size)
     g2xx, g2xy = image_gradients(g2x)
     g2yx, g2yy = image_gradients(g2y)
     return jnp.concatenate([img2, g2x, g2y, g2xx, 0.5 * (g2xy + g2yx), g2yy], -1)
@@ -372,15 +399,17 @@ def median_filter_flow(flow: jax.Array, region: jax.Array, size: int = 3) -> jax
     return median_filter(flow, size, region)
 
 
-def _level(flow, img1, img2, r, region, params, config: FlowConfig, warps: int):
+def _level(flow, img1, img2, r, region, params, config: FlowConfig, warps: int, size=None):
     """`warps` outer fixed-point iterations at one pyramid level (H, W even); returns (H, W, 2) flow.
 
     Per-pixel fields live in the parity layout for the whole level; warping samples the full-layout
     derivative stack of I2 directly at the parity-ordered positions, so no per-warp relayout is needed.
+    With `size` = (h, w) (traced) the level is the top-left h x w of padded arrays: images edge-
+    replicated beyond it, r = 0 and Ω1 false there; warping samples within it.
     """
     h, w = img1.shape[:2]
     dtype = img1.dtype
-    stack2 = derivative_stack(img2)
+    stack2 = derivative_stack(img2, size)
     g1x, g1y = image_gradients(img1)
     i1q = to_quarters(jnp.concatenate([img1, g1x, g1y], -1))
     rq, regq = to_quarters(r), to_quarters(region)
@@ -388,7 +417,7 @@ def _level(flow, img1, img2, r, region, params, config: FlowConfig, warps: int):
     xq, yq = to_quarters(jnp.asarray(gx, dtype)), to_quarters(jnp.asarray(gy, dtype))
 
     def outer(_, fq):
-        warped, inside = sample_bilinear(stack2, xq + fq[..., 0], yq + fq[..., 1])
+        warped, inside = sample_bilinear(stack2, xq + fq[..., 0], yq + fq[..., 1], size)
         J = _tensor(warped, inside, i1q, rq, regq)
         du, dv = _solve_increment(J, fq[..., 0], fq[..., 1], regq, params, config)
         fq = fq + jnp.stack([du, dv], -1)
@@ -402,10 +431,65 @@ def _level(flow, img1, img2, r, region, params, config: FlowConfig, warps: int):
     return flow
 
 
+def _pad_to(a: jax.Array, shape: tuple[int, int], fill) -> jax.Array:
+    """Pad (h, w, ...) at the bottom/right to `shape`: edge-replicated (fill None) or with `fill`."""
+    pad = [(0, shape[0] - a.shape[0]), (0, shape[1] - a.shape[1])] + [(0, 0)] * (a.ndim - 2)
+    return jnp.pad(a, pad, mode="edge") if fill is None else jnp.pad(a, pad, constant_values=fill)
+
+
+def _resize_flow_within(flow: jax.Array, src, dst) -> jax.Array:
+    """`upsample_flow` between sizes given as data: the top-left `src` = (h, w) part of an (H, W, 2) flow
+    resampled (bilinear, pixel centres aligned, border clamped: `resize_bilinear`'s rule) onto the top-left
+    `dst` part and rescaled to its pixel units. Pixels beyond `dst` get clamped copies (they are padding)."""
+    dtype = flow.dtype
+
+    def taps(n_grid, n_in, n_out):
+        i = jnp.arange(n_grid, dtype=dtype)
+        pos = jnp.clip((i + 0.5) * (n_in.astype(dtype) / n_out.astype(dtype)) - 0.5, 0.0, (n_in - 1).astype(dtype))
+        i0 = jnp.minimum(jnp.floor(pos).astype(jnp.int32), jnp.maximum(n_in - 2, 0))
+        return i0, jnp.minimum(i0 + 1, n_in - 1), pos - i0.astype(dtype)
+
+    r0, r1, fr = taps(flow.shape[0], src[0], dst[0])
+    c0, c1, fc = taps(flow.shape[1], src[1], dst[1])
+    rows = jnp.take(flow, r0, axis=0) * (1 - fr)[:, None, None] + jnp.take(flow, r1, axis=0) * fr[:, None, None]
+    out = jnp.take(rows, c0, axis=1) * (1 - fc)[None, :, None] + jnp.take(rows, c1, axis=1) * fc[None, :, None]
+    scale = jnp.stack([dst[1].astype(dtype) / src[1].astype(dtype), dst[0].astype(dtype) / src[0].astype(dtype)])
+    return out * scale
+
+
+def _shared_levels(flow, shapes, i1s, i2s, rs, oms, params, config: FlowConfig):
+    """Pyramid levels shapes[0] (the finest of them) ... shapes[-1] (the coarsest), coarse to fine, as one
+    compiled level in a `lax.fori_loop`: each level padded to shapes[0] (frames edge-replicated, r = 0 and
+    Ω1 false beyond it) with its true size as data (`_level(size=)`).
+
+    Args:
+        flow: (shapes[-1] + (2,)) the start flow at the coarsest of these levels.
+        i1s, i2s, rs, oms: per level (finest first) the frames (h, w, C), r (h, w, 1) and Ω1's fraction (h, w, 1).
+
+    Returns:
+        (shapes[0] + (2,)) the flow at the finest of these levels.
+    """
+    grid = shapes[0]
+    order = range(len(shapes) - 1, -1, -1)  # coarse to fine
+    img1 = jnp.stack([_pad_to(i1s[k], grid, None) for k in order])
+    img2 = jnp.stack([_pad_to(i2s[k], grid, None) for k in order])
+    r = jnp.stack([_pad_to(rs[k][..., 0], grid, 0.0) for k in order])
+    region = jnp.stack([_pad_to(oms[k][..., 0] > 0.5, grid, False) for k in order])
+    sizes = jnp.asarray([shapes[k] for k in order], jnp.int32)  # (L, 2)
+
+    def level(j, flow):
+        size = sizes[j]
+        flow = _resize_flow_within(flow, sizes[jnp.maximum(j - 1, 0)], size)  # the identity at j = 0
+        return _level(flow, img1[j], img2[j], r[j], region[j], params, config, config.warps, (size[0], size[1]))
+
+    return jax.lax.fori_loop(0, len(shapes), level, _pad_to(flow, grid, 0.0))
+
+
 def _compute_flow(inputs: FlowInputs, config: FlowConfig, record: bool = False):
     """Coarse-to-fine loop over the pyramid; `inputs` padded to even sides (`FlowInputs.padded_even`).
 
-    Returns the (H, W, 2) flow (zero outside Ω1); with `record`, also the energies per level (L, 2).
+    Returns the (H, W, 2) flow (zero outside Ω1); with `record`, also the energies per level (L, 2) (every
+    level unrolled then, whatever `config.shared_levels_from`).
     """
     img1, img2, params, region = inputs.img1, inputs.img2, inputs.params, inputs.region
     h, w = img1.shape[:2]
@@ -421,7 +505,12 @@ def _compute_flow(inputs: FlowInputs, config: FlowConfig, record: bool = False):
     init_flow = inputs.init_flow
     flow = jnp.zeros((ch, cw, 2), dtype) if init_flow is None else upsample_flow(init_flow, (ch, cw))
     energies = []
-    for k in range(len(shapes) - 1, -1, -1):
+    finest_unrolled = len(shapes) - 1
+    shared = config.shared_levels_from
+    if not record and 1 <= shared < len(shapes) - 1:  # two or more coarse levels share one compiled level
+        flow = _shared_levels(flow, shapes[shared:], i1s[shared:], i2s[shared:], rs[shared:], oms[shared:], params, config)
+        finest_unrolled = shared - 1
+    for k in range(finest_unrolled, -1, -1):
         if flow.shape[:2] != shapes[k]:
             flow = upsample_flow(flow, shapes[k])
         # Level 0 uses Ω1 exactly; coarser levels keep pixels that are mostly inside.
