@@ -495,12 +495,16 @@ def _compute_flow(inputs: FlowInputs, config: FlowConfig, record: bool = False):
     h, w = img1.shape[:2]
     dtype = img1.dtype
     shapes = pyramid_shapes(h, w, config.eta, min(config.min_size, h, w), config.max_levels)
-    i1s, i2s, rs, oms = [img1], [img2], [inputs.data_weight[..., None]], [region[..., None].astype(dtype)]
+    # The four pyramids (I1, I2, r, Ω1's fraction) as the channels of one array: one blur and resample per level
+    # (the blur is per channel), a quarter of the compiled pyramid code.
+    c = img1.shape[-1]
+    levels = [jnp.concatenate([img1, img2, inputs.data_weight[..., None], region[..., None].astype(dtype)], -1)]
     for shape in shapes[1:]:
-        i1s.append(downsample(i1s[-1], shape, config.eta))
-        i2s.append(downsample(i2s[-1], shape, config.eta))
-        rs.append(downsample(rs[-1], shape, config.eta))
-        oms.append(downsample(oms[-1], shape, config.eta))
+        levels.append(downsample(levels[-1], shape, config.eta))
+    i1s = [img1] + [a[..., :c] for a in levels[1:]]
+    i2s = [img2] + [a[..., c:2 * c] for a in levels[1:]]
+    rs = [a[..., 2 * c:2 * c + 1] for a in levels]
+    oms = [a[..., 2 * c + 1:] for a in levels]
     ch, cw = shapes[-1]
     init_flow = inputs.init_flow
     flow = jnp.zeros((ch, cw, 2), dtype) if init_flow is None else upsample_flow(init_flow, (ch, cw))
