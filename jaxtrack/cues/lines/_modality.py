@@ -109,21 +109,29 @@ class LineRegion(Modality):
         return load_or_build_view_model(mesh, num_points=self.num_points, subdivisions=self.subdivisions,
                                         image_size=self.image_size)
 
-    def _points(self, ctx, frame, c):
-        """The contour points camera `c` uses: the view model (its nearest view is looked up per pose) or the
-        frame's render-based points."""
-        if isinstance(ctx.prepared, SparseViewModel):
-            return ctx.prepared
-        return jax.tree.map(lambda a: a[c], frame)
+    @staticmethod
+    def _per_camera(ctx, fn, points, *per_camera):
+        """`fn(camera, c, points, occluder_depth, *arrays)` of every camera, vmapped over the rig (one compiled copy
+        of the line code, not one per camera); outputs get a leading C axis.
 
-    def _per_camera(self, ctx, fn):
-        cams = ctx.cameras
-        return [fn(jax.tree.map(lambda a, c=c: a[c], cams), c) for c in range(cams.K.shape[0])]
+        points: the view model (shared by the cameras: its nearest view is looked up per pose) or (C, N) render-based
+        contour points (chains); per_camera: further pytrees with a leading C axis; the occluder depth is None (one
+        object) or (C, H, W) depth of the other tracked objects."""
+        shared = isinstance(points, SparseViewModel)
+        occluder = ctx.occluder_depth
+
+        def one(cam, c, pts, occ, *arrays):
+            return fn(cam, c, points if shared else pts, occ, *arrays)
+
+        num = ctx.cameras.K.shape[0]
+        axes = (0, 0, None if shared else 0, None if occluder is None else 0) + (0,) * len(per_camera)
+        return jax.vmap(one, in_axes=axes)(ctx.cameras, jnp.arange(num, dtype=jnp.int32), None if shared else points,
+                                           occluder, *per_camera)
 
     @staticmethod
-    def _occluder(ctx, c):
-        """(H, W) depth of the other tracked objects in camera `c`, or None (one object)."""
-        return None if ctx.occluder_depth is None else ctx.occluder_depth[c]
+    def _contour(ctx, frame):
+        """The contour points the cameras use: the view model, or the frame's render-based (C, N) points (chains)."""
+        return ctx.prepared if isinstance(ctx.prepared, SparseViewModel) else frame
 
     def _render_points(self, ctx, pose: Pose) -> ContourPoints:
         """(C, N) contour points of a full-frame render at `pose` (kinematic chains)."""
@@ -141,12 +149,11 @@ class LineRegion(Modality):
         points = None if isinstance(ctx.prepared, SparseViewModel) else self._render_points(ctx, pose)
         frames = ctx.frames.astype(pose.T_world_root.dtype)
 
-        def learn(cam, c):
-            return learn_line_histograms(cam, pose.T_world_root, self._points(ctx, points, c), frames[c], params.lines,
-                                         self.bins, self.config, ctx.model, pose.theta, self._occluder(ctx, c))
+        def learn(cam, c, pts, occ, image):
+            return learn_line_histograms(cam, pose.T_world_root, pts, image, params.lines, self.bins, self.config, ctx.model,
+                                         pose.theta, occ)
 
-        hists = self._per_camera(ctx, learn)
-        return LineState(jax.tree.map(lambda *a: jnp.stack(a), *hists))
+        return LineState(self._per_camera(ctx, learn, self._contour(ctx, points), frames))
 
     # --- per frame ----------------------------------------------------------------------------------
     def start(self, ctx: FrameContext, state, host, params):
@@ -167,26 +174,23 @@ class LineRegion(Modality):
                               round_index)
         images = ctx.frames
 
-        def one(cam, c):
-            hist = jax.tree.map(lambda a: a[c], carry)  # this camera's log-odds table (round_start)
-            return line_rows(cam, pose.T_world_root, self._points(ctx, frame, c), images[c], hist, params.lines, scale, std,
-                             self.config, ctx.model, pose.theta, cue=self.cue, camera_index=c, undistort=True,
-                             occluder_depth=self._occluder(ctx, c))
+        def one(cam, c, pts, occ, image, table):  # table: this camera's log-odds table (round_start)
+            return line_rows(cam, pose.T_world_root, pts, image, table, params.lines, scale, std, self.config, ctx.model,
+                             pose.theta, cue=self.cue, camera_index=c, undistort=True, occluder_depth=occ)
 
-        sets = self._per_camera(ctx, one)
-        return jax.tree.map(lambda *a: jnp.concatenate(a), *sets), carry
+        rows = self._per_camera(ctx, one, self._contour(ctx, frame), images, carry)
+        return jax.tree.map(lambda a: a.reshape((-1,) + a.shape[2:]), rows), carry  # camera-major, as concatenated
 
     def update(self, ctx: FrameContext, state: LineState, frame, carry, pose: Pose, params) -> LineState:
         """The histograms learn the lines' pixels at the final pose (M3T's rate, `TrackerParams.line_learning_rate`)."""
         images = ctx.frames
 
-        def one(cam, c):
-            new = learn_line_histograms(cam, pose.T_world_root, self._points(ctx, frame, c), images[c], params.lines,
-                                        self.bins, self.config, ctx.model, pose.theta, self._occluder(ctx, c))
-            return update_histograms(jax.tree.map(lambda a: a[c], state.histograms), new, params.line_learning_rate)
+        def one(cam, c, pts, occ, image, hists):
+            new = learn_line_histograms(cam, pose.T_world_root, pts, image, params.lines, self.bins, self.config, ctx.model,
+                                        pose.theta, occ)
+            return update_histograms(hists, new, params.line_learning_rate)
 
-        hists = self._per_camera(ctx, one)
-        return LineState(jax.tree.map(lambda *a: jnp.stack(a), *hists))
+        return LineState(self._per_camera(ctx, one, self._contour(ctx, frame), images, state.histograms))
 
     def evidence(self, ctx: FrameContext, state: LineState, frame, carry, pose: Pose, render, params) -> dict:
         """At the final pose, finest scale: the fraction of valid lines whose contour lies within `inlier_px`
@@ -196,15 +200,12 @@ class LineRegion(Modality):
 
         tables = state.histograms if carry is None else carry  # the rounds' log-odds tables (same histograms)
 
-        def one(cam, c):
-            hist = jax.tree.map(lambda a: a[c], tables)
-            m = measure_lines(cam, pose.T_world_root, self._points(ctx, frame, c), images[c], hist, params.lines, scale,
-                              self.config, ctx.model, pose.theta, self._occluder(ctx, c))
+        def one(cam, c, pts, occ, image, table):
+            m = measure_lines(cam, pose.T_world_root, pts, image, table, params.lines, scale, self.config, ctx.model,
+                              pose.theta, occ)
             return jnp.sum(m.valid), jnp.sum(m.valid & (jnp.abs(m.mean) <= self.inlier_px))
 
-        per = self._per_camera(ctx, one)
-        valid = jnp.stack([p[0] for p in per])
-        close = jnp.stack([p[1] for p in per])
+        valid, close = self._per_camera(ctx, one, self._contour(ctx, frame), images, tables)
         dtype = pose.T_world_root.dtype
         return {"confidence": (jnp.sum(close) / jnp.maximum(jnp.sum(valid), 1)).astype(dtype), "seen": valid > 0,
                 "valid_lines": valid}
