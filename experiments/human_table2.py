@@ -290,9 +290,9 @@ def main(argv=None):
     ap.add_argument("--budget-min", type=float, default=60.0, help="start no new run after this many minutes")
     ap.add_argument("--seq-dir", default=None, help="keep the rendered sequences here (default: a temporary folder)")
     ap.add_argument("--out", default=str(RESULTS / "human_table2.md"))
-    ap.add_argument("--plot", default=str(RESULTS / "human_table2.png"))
-    ap.add_argument("--overlay", default=str(RESULTS / "human_table2_overlay.png"),
-                    help="one overlay frame (all-cue run at the highest frame rate)")
+    ap.add_argument("--plot", default=None, help="figure (default: beside --out, <out>.png)")
+    ap.add_argument("--overlay", default=None,
+                    help="one overlay frame (all-cue run at the highest frame rate; default: beside --out, <out>_overlay.png)")
     ap.add_argument("--tangent-weight", type=float, default=None,
                     help="override the region cue's tangent weight for chains (jaxtrack.track CHAIN_REGION)")
     ap.add_argument("--joint-prior", type=float, default=None,
@@ -300,6 +300,11 @@ def main(argv=None):
     ap.add_argument("--motion-stats", action="store_true",
                     help="only print (and write to results/human_motion_steps.md) how far each motion moves per frame")
     args = ap.parse_args(argv)
+    out = pathlib.Path(args.out) if args.out else None  # the figures go beside the table unless named
+    if args.plot is None:
+        args.plot = str(out.with_suffix(".png")) if out else None
+    if args.overlay is None:
+        args.overlay = str(out.with_name(out.stem + "_overlay.png")) if out else None
     region = {k: v for k, v in (("tangent_weight", args.tangent_weight), ("joint_prior", args.joint_prior)) if v is not None}
     args.motions = [m.strip() for m in args.motions.split(",") if m.strip()]
     fps_list = [int(f) for f in args.fps.split(",")]
