@@ -83,10 +83,6 @@ LOSS_WEIGHTS = (-2.995, 2.561, 3.858, 22.900, 11.744, 2.026)
 # 10° step (24 crop px) left the flow + SIFT prediction worse than none (all cues 3/8 tracked); with 4 px, 8/8
 # (experiments/large_motion.py; README "Residuals that shrink toward the camera, and a flow that missed a large motion").
 WORKING_FLOW_MIN_SIZE = 4
-# At the working resolution every level below the finest shares one compiled level (`FlowConfig.shared_levels_from`):
-# the coarse levels of a 96x128 crop are small enough that solving them on the 48x64 grid costs no measurable time,
-# and the first frame compiles about 8 s sooner (experiments/results/bench_track_shared_levels.md).
-WORKING_FLOW_SHARED_FROM = 1
 
 
 @functools.lru_cache(maxsize=64)
@@ -137,8 +133,9 @@ class TrackerConfig(eqx.Module):
     # The prediction starts the refinement near the answer: 10 rounds gave the tea box the same errors as
     # 30 (1.43° / 2.54 mm both, measured) and bound the frame's worst-case time.
     region: RegionConfig = eqx.field(static=True, default_factory=lambda: RegionConfig(outer_iterations=10))
-    # Levels from 2 on share one compiled level (`FlowConfig.shared_levels_from`; 1 at the working resolution):
-    # the same flow to rounding, 2.5 s less XLA compile at a 240x320 crop for about 4 ms more per camera.
+    # Levels from 2 on share one compiled level (`FlowConfig.shared_levels_from`): the same flow to rounding, 4 s less
+    # XLA compile at 96x128 and 240x320 for 0.3 ms or less per call; from 1 on compiled 2 s faster still but ran 3.4 ms
+    # slower at 96x128 (experiments/results/flow_compile.md).
     flow: FlowConfig = eqx.field(static=True, default_factory=lambda: FlowConfig(eta=0.5, min_size=16, warps=4, lagged=1,
                                                                                  sor_iters=10, shared_levels_from=2))
     flow_stride: int = eqx.field(static=True, default=4)
@@ -183,7 +180,7 @@ class TrackerConfig(eqx.Module):
         """This configuration with "auto" resolved for a rigid object (lines; crops at `RIGID_WORKING_SHAPE` unless
         the level set is configured) or a chain (the level set; native-resolution crops). With a working shape the
         flow pyramid runs down to `WORKING_FLOW_MIN_SIZE` (the crop is small: it needs its levels to reach the
-        motion) and its levels below the finest share one compiled level (`WORKING_FLOW_SHARED_FROM`)."""
+        motion)."""
         out = self
         if self.region_modality == "auto":
             out = dataclasses.replace(out, region_modality="levelset" if articulated else "lines")
@@ -192,8 +189,6 @@ class TrackerConfig(eqx.Module):
             out = dataclasses.replace(out, working_shape=None if articulated or dense else RIGID_WORKING_SHAPE)
         if out.working_shape is not None and out.flow.min_size > WORKING_FLOW_MIN_SIZE:
             out = dataclasses.replace(out, flow=dataclasses.replace(out.flow, min_size=WORKING_FLOW_MIN_SIZE))
-        if out.working_shape is not None and out.flow.shared_levels_from > WORKING_FLOW_SHARED_FROM:
-            out = dataclasses.replace(out, flow=dataclasses.replace(out.flow, shared_levels_from=WORKING_FLOW_SHARED_FROM))
         return out
 
     def modalities(self) -> tuple[Modality, ...]:
