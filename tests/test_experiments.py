@@ -186,3 +186,20 @@ def test_recovery_report_compares_the_modes():
     mean = next(t for t in text.splitlines() if t.startswith("| **mean"))
     assert "**62.5 %**" in mean and "**87.5 %**" in mean
     assert "RECOVERED: 1, of which within the bound: 1; found by the keyframes' PnP: 1" in text
+
+
+def test_flow_compile_quick(tmp_path):
+    """experiments/flow_compile.py: the shared coarse levels give the unrolled flow and the motion is found."""
+    results = _load("flow_compile").main(["--quick", "--out", str(tmp_path / "f.md")])
+    (_, _, levels, rows), = results
+    assert levels >= 3 and [r["k"] for r in rows] == [0, 1]
+    assert rows[1]["max_diff"] < 1e-3 and all(r["epe"] < 0.5 for r in rows), rows
+    assert "| smoke | 32x48 |" in (tmp_path / "f.md").read_text()
+
+
+def test_first_frame_compile_quick(tmp_path):
+    """experiments/first_frame_compile.py: a fresh process tracks a frame and the compile log is read."""
+    runs = _load("first_frame_compile").main(["--quick", "--out", str(tmp_path / "c.md")])
+    (row,) = runs["lines"]
+    assert row["xla_s"] > 0 and row["first_frame_s"] >= row["start_s"] > 0 and row["largest_xla_s"]
+    assert "| region | 1 |" in (tmp_path / "c.md").read_text()
