@@ -603,10 +603,7 @@ def _pad_even(a, fill):
     if a is None:
         return None
     h, w = a.shape[:2]
-    pad = [(0, h % 2), (0, w % 2)] + [(0, 0)] * (a.ndim - 2)
-    if fill is None:
-        return jnp.pad(a, pad, mode="edge")
-    return jnp.pad(a, pad, constant_values=fill)
+    return _pad_to(a, (h + h % 2, w + w % 2), fill)
 
 
 class FlowInputs(eqx.Module):
