@@ -40,6 +40,7 @@ import warnings
 
 import equinox as eqx
 import jax
+import numpy as np
 
 _FOLDER: list[pathlib.Path | None] = [None]
 _PLAIN = object()  # an entry meaning "this signature runs eqx.filter_jit"
@@ -204,11 +205,26 @@ class _Entry:
         # One placement for every argument (the call's device): jit would otherwise lower (and compile) the call again
         # when some inputs are committed to the device (outputs of the previous call) and others not.
         placement = jax.sharding.SingleDeviceSharding(device)
+        self.exported = exported
         self.call = jax.jit(exported.call, in_shardings=placement, out_shardings=placement)
         self.out_treedef, self.out_is_dynamic, self.out_static = out_treedef, out_is_dynamic, out_static
+        self.compiled = False
+
+    def compile(self, dynamic) -> None:
+        """XLA's compile of the program for these arguments (or its load from the on-disk cache), without running it;
+        the next call finds it in jit's cache. Releases the GIL while XLA works (two programs can load at once)."""
+        self.call.lower(*dynamic).compile()
+        self.compiled = True
+
+    def outputs_like(self):
+        """The call's output tree with numpy zeros in place of its arrays (for compiling a program that takes them)."""
+        zeros = iter([np.zeros(a.shape, a.dtype) for a in self.exported.out_avals])
+        static = iter(self.out_static)
+        return jax.tree_util.tree_unflatten(self.out_treedef, [next(zeros) if d else next(static) for d in self.out_is_dynamic])
 
     def __call__(self, dynamic):
         out = iter(self.call(*dynamic))
+        self.compiled = True
         static = iter(self.out_static)
         return jax.tree_util.tree_unflatten(self.out_treedef, [next(out) if d else next(static) for d in self.out_is_dynamic])
 
@@ -272,6 +288,24 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
             warnings.warn(f"jaxtrack: the kept program of {self.qualname} failed ({type(error).__name__}: {error}); "
                           "traced instead", RuntimeWarning, stacklevel=3)
             return self.plain(*args, **kwargs)
+
+    def outputs_like(self, *args, **kwargs):
+        """Zeros (numpy) shaped as the call's outputs, from its entry (made now: its program traced and exported, or
+        loaded), for compiling a program that takes them before this one has run; None where the call runs
+        `eqx.filter_jit`."""
+        entry = self._resolve(args, kwargs)[0]
+        return None if entry is _PLAIN else entry.outputs_like()
+
+    def compile(self, *args, **kwargs) -> bool:
+        """Compile the call's program without running it (or load the executable from the on-disk cache), making its
+        entry first if needed. Returns False, and does nothing, where the call runs `eqx.filter_jit`. XLA releases the
+        GIL: `Tracker.step` compiles its two programs at once on the first frame."""
+        entry, dynamic, _ = self._resolve(args, kwargs)
+        if entry is _PLAIN:
+            return False
+        if not entry.compiled:
+            entry.compile(dynamic)
+        return True
 
     def dispatches_async(self, *args, **kwargs) -> bool:
         """Whether a call with these arguments returns before its program has run (jax's asynchronous dispatch): a

@@ -277,6 +277,46 @@ def test_a_tracker_with_the_cache_tracks_as_without_and_a_new_process_traces_not
     assert np.allclose(plain, with_cache, rtol=0, atol=1e-9), np.abs(plain - with_cache).max()
 
 
+def test_compiled_ahead_in_threads_the_calls_compile_nothing(folder):
+    """`persistent_jit.compile` makes the entry and compiles its program without running it, and the call then finds
+    it in jit's cache (`Tracker.step` compiles `start_frame` in a thread while it compiles `track_step` on zeros
+    shaped as `start_frame`'s outputs, `outputs_like`). XLA's on-disk cache is off here: every compile is counted."""
+    from jax._src import dispatch, monitoring
+
+    compiles = []
+
+    def count(event, seconds, **kwargs):
+        if event == dispatch.BACKEND_COMPILE_EVENT:
+            compiles.append(seconds)
+
+    m, x = Scaled(jnp.arange(3.0), 2), jnp.array([1.0, -2.0, 0.5])
+    produce, consume = persistent_jit(model), persistent_jit(lambda s, total: s.weights * total)
+    like = produce.outputs_like(m, x)  # its entry now exists: traced and exported
+    assert isinstance(like[0], Scaled) and like[0].power == 3 and like[2] == "done"
+    assert like[0].weights.shape == (3,) and not np.any(like[0].weights) and like[1].shape == ()
+    cache_was = jax.config.jax_enable_compilation_cache
+    jax.config.update("jax_enable_compilation_cache", False)
+    monitoring.register_event_duration_secs_listener(count)
+    try:
+        import threading
+
+        thread = threading.Thread(target=produce.compile, args=(m, x))
+        thread.start()
+        assert consume.compile(like[0], like[1])
+        thread.join()
+        compiled = len(compiles)
+        out = produce(m, x)
+        got = consume(out[0], out[1])
+        assert len(compiles) == compiled == 2  # one compile per program, none at the calls
+    finally:
+        monitoring.unregister_event_duration_listener(count)
+        jax.config.update("jax_enable_compilation_cache", cache_was)
+    expected = eqx.filter_jit(model)(m, x)
+    assert np.array_equal(np.asarray(got), np.asarray(expected[0].weights * expected[1]))
+    _exported._FOLDER[0] = None  # without a folder: nothing compiled ahead (eqx.filter_jit compiles at the call)
+    assert produce.outputs_like(m, x) is None and produce.compile(m, x) is False
+
+
 def test_dispatches_async_only_for_kept_programs(folder, monkeypatch):
     double = persistent_jit(lambda x: 2.0 * x)
     x = jnp.ones((3,), jnp.float32)

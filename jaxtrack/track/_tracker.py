@@ -289,6 +289,7 @@ class Tracker:
         self._boxes_memo = None  # (pose bytes, (C, 4) boxes) of the last projected pose (`_boxes_at`)
         self.recoveries = 0  # frames RECOVERED since `start`
         self._recovery_warmup: threading.Thread | None = None
+        self._compiled: set = set()  # (crop shape, fixed resolution, plan) whose two step programs `_compile_both` made
         # Compile the recovery program in the background after the first frame (`_warm_up_recovery`);
         # $JAXTRACK_RECOVERY_WARMUP=0 compiles it when first needed instead (the test suite: most of its trackers
         # never lose the object, and each compile costs a few seconds of its two cores).
@@ -632,6 +633,9 @@ class Tracker:
             setup = self.setup()
             early = None
             if self._overlaps_host():  # dispatched, not waited for: the device works while the host detects
+                if host is None and (crop_shape, scales is None, id(setup.window_plan)) not in self._compiled:
+                    host, host_s = self._compile_both(setup, state, frames, frames_j, offsets_j, params, crop_shape,
+                                                      scales_j, timings)
                 early = _start_frame_jit.call_async(setup, state, frames_j, offsets_j, params, crop_shape, scales_j)
             if host is None:
                 host_start = time.perf_counter()
@@ -646,6 +650,33 @@ class Tracker:
                          poses=((state.T_world_root, state.theta),))
         jax.block_until_ready(result)
         return new_state, result, host_s
+
+    def _compile_both(self, setup, state, frames, frames_j, offsets_j, params, crop_shape, scales_j, timings):
+        """The first frame of a signature with the host overlapped: `start_frame`'s program compiles (or loads from
+        the on-disk cache) in a thread while this one makes the host inputs and compiles `track_step`'s, so that the
+        two executables load at once (XLA releases the GIL: a warm cache's two loads, 0.58 + 0.54 s on this 2-core
+        CPU, take about the time of one). Only for kept programs (`persistent_jit`; the plain path compiles each at
+        its first call). Returns (host inputs, their seconds)."""
+        self._compiled.add((crop_shape, scales_j is None, id(setup.window_plan)))
+        start_args = (setup, state, frames_j, offsets_j, params, crop_shape, scales_j)
+        early_like = _start_frame_jit.outputs_like(*start_args)  # its entry: traced and exported, or loaded
+        thread = None
+        if early_like is not None:
+            def compile_start_frame():
+                try:
+                    _start_frame_jit.compile(*start_args)
+                except Exception:  # noqa: BLE001, S110  (the call compiles again and reports it, or falls back)
+                    pass
+
+            thread = threading.Thread(target=compile_start_frame, daemon=True, name="jaxtrack-start-frame-compile")
+            thread.start()
+        host_start = time.perf_counter()
+        host = self.host_inputs(state, frames, timings)
+        host_s = time.perf_counter() - host_start
+        if thread is not None:
+            _track_step_jit.compile(setup, state, frames_j, host, offsets_j, params, crop_shape, scales_j, early_like)
+            thread.join()
+        return host, host_s
 
     # --- recovery (issue 24) ------------------------------------------------------------------------
     def recovery_modality(self) -> int | None:
