@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.typing import ArrayLike
 
+from .._exported import persistent_jit
 from .._status import Status, StatusError, first_failure, status_where
 from ..geometry import (
     Camera,
@@ -368,16 +369,18 @@ def _screen_faces(mesh, camera, T_world_root, theta, model, cull_backfaces):
     return _screen_faces_jit(mesh, camera, jnp.asarray(T_world_root, mesh.vertices.dtype), theta, model, bool(cull_backfaces))
 
 
-@eqx.filter_jit
-def _screen_faces_jit(mesh, camera, T_world_root, theta, model, cull_backfaces: bool):
+def _screen_faces_body(mesh, camera, T_world_root, theta, model, cull_backfaces: bool):
     """`_screen_faces` as one compiled program (op by op it dispatched ~70 primitives, each compiled in every
-    fresh process: 3 s of a tracker's start)."""
+    fresh process: 3 s of a tracker's start); kept on disk (`persistent_jit`: a warm process does not trace it)."""
     p_cam, px, _ = _project_vertices(mesh, camera, model, T_world_root, theta)
     valid = jnp.all(p_cam[mesh.faces, 2] > 0, axis=1)
     if cull_backfaces:
         valid = valid & _front_facing(px[mesh.faces])
     _, sides, on_screen = _face_boxes(px[mesh.faces], valid, camera.width, camera.height)
     return px[mesh.faces], jnp.where(on_screen[:, None], sides, 0), on_screen
+
+
+_screen_faces_jit = persistent_jit(_screen_faces_body)
 
 
 def face_extents(

@@ -7,6 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..._exported import persistent_jit
 from ...geometry import (
     Camera,
     KinematicModel,
@@ -28,13 +29,15 @@ def _as_rig(cameras: Camera) -> Camera:
     return cameras if cameras.K.ndim == 3 else stack_cameras([cameras])
 
 
-@eqx.filter_jit
-def _projected_vertices(mesh: Mesh, cameras: Camera, model: KinematicModel, T_world_root, theta):
+def _projected_vertices_body(mesh: Mesh, cameras: Camera, model: KinematicModel, T_world_root, theta):
     """(C, V, 2) pixels and (C, V) depths of the posed mesh vertices in each camera (one compiled call:
-    op by op this cost 2 s per tracker start and ~0.1 s per frame)."""
+    op by op this cost 2 s per tracker start and ~0.1 s per frame; kept on disk, `persistent_jit`)."""
     T_parts = part_transforms(model, T_world_root, theta)[mesh.vertex_part]
     p_world = jnp.einsum("vij,vj->vi", T_parts[:, :3, :3], mesh.vertices) + T_parts[:, :3, 3]
     return jax.vmap(lambda cam: project_points(cam, p_world.astype(cam.K.dtype)))(cameras)
+
+
+_projected_vertices = persistent_jit(_projected_vertices_body)
 
 
 def projected_boxes(mesh: Mesh, cameras: Camera, T_world_root, theta=None, model: KinematicModel | None = None) -> np.ndarray:
