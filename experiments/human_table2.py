@@ -13,6 +13,7 @@ below; flow only always drifts. Goal: ≤ 4° with all cues at every frame rate,
 
     python experiments/human_table2.py                          # writes experiments/results/human_table2.md/.png
     python experiments/human_table2.py --motions walk --fps 120,24 --cues region+flow+sift,region --frames 60
+    python experiments/human_table2.py --cues region+flow+sift --region lines   # the correspondence lines, not the level set
 """
 
 from __future__ import annotations
@@ -97,7 +98,8 @@ def score(run, seq, fps: int) -> dict:
     }
 
 
-def run_one(seq_path: pathlib.Path, subset: str, fps: int, overlay: pathlib.Path | None = None) -> dict:
+def run_one(seq_path: pathlib.Path, subset: str, fps: int, overlay: pathlib.Path | None = None,
+            region_modality: str = "auto") -> dict:
     from jaxtrack.io import read_sequence
     from jaxtrack.track import track_sequence
 
@@ -106,7 +108,8 @@ def run_one(seq_path: pathlib.Path, subset: str, fps: int, overlay: pathlib.Path
     if overlay is not None:
         recorder = _overlay_recorder(seq, overlay)
     t0 = time.perf_counter()
-    run = track_sequence(seq, cues=tuple(subset.split("+")), progress=False, on_frame=recorder)
+    run = track_sequence(seq, cues=tuple(subset.split("+")), progress=False, on_frame=recorder,
+                         region=None if region_modality == "auto" else region_modality)
     if recorder is not None:
         recorder.writer.close()
     out = score(run, seq, fps)
@@ -129,14 +132,15 @@ def run_one(seq_path: pathlib.Path, subset: str, fps: int, overlay: pathlib.Path
     return out
 
 
-def run_in_subprocess(seq_path: pathlib.Path, subset: str, fps: int, overlay: pathlib.Path | None, region: dict) -> dict | None:
+def run_in_subprocess(seq_path: pathlib.Path, subset: str, fps: int, overlay: pathlib.Path | None, region: dict,
+                      region_modality: str = "auto") -> dict | None:
     """`run_one` in a fresh Python: every configuration compiles its own 4-camera programs (or loads them from
     the on-disk cache), and one process holding ~10 of them ran out of LLVM section memory (the mappings
     of the compiled code; it died on the 11th). None when the child fails (its stderr tail is printed)."""
     with tempfile.TemporaryDirectory() as tmp:
         result = pathlib.Path(tmp) / "result.json"
         cmd = [sys.executable, __file__, "--one", str(seq_path), subset, str(fps), "--result", str(result),
-               "--region", json.dumps(region)]
+               "--region", json.dumps(region), "--region-modality", region_modality]
         if overlay is not None:
             cmd += ["--overlay-dir", str(overlay)]
         proc = subprocess.run(cmd, check=False, capture_output=True, text=True)
@@ -149,7 +153,8 @@ def run_in_subprocess(seq_path: pathlib.Path, subset: str, fps: int, overlay: pa
 
 
 def _child(argv) -> None:
-    """`--one SEQ SUBSET FPS --result FILE [--overlay-dir DIR] [--region JSON]`: one run, its result as JSON."""
+    """`--one SEQ SUBSET FPS --result FILE [--overlay-dir DIR] [--region JSON] [--region-modality M]`: one run, its
+    result as JSON."""
     import cv2
 
     cv2.setNumThreads(1)
@@ -158,6 +163,7 @@ def _child(argv) -> None:
     ap.add_argument("--result", required=True)
     ap.add_argument("--overlay-dir", default=None)
     ap.add_argument("--region", default="{}")
+    ap.add_argument("--region-modality", default="auto")
     args = ap.parse_args(argv)
     region = json.loads(args.region)
     if region:  # the experiment's knob on the chain defaults (tangent weight, joint prior)
@@ -165,7 +171,8 @@ def _child(argv) -> None:
 
         _tracker.CHAIN_REGION = {**_tracker.CHAIN_REGION, **region}
     seq, subset, fps = args.one
-    out = run_one(pathlib.Path(seq), subset, int(fps), pathlib.Path(args.overlay_dir) if args.overlay_dir else None)
+    out = run_one(pathlib.Path(seq), subset, int(fps), pathlib.Path(args.overlay_dir) if args.overlay_dir else None,
+                  args.region_modality)
     out["curves"] = [np.asarray(c).tolist() for c in out["curves"]]
     pathlib.Path(args.result).write_text(json.dumps(out))
 
@@ -206,6 +213,11 @@ def _cell(r) -> str:
     return f"{r['mean']:.2f} ± {r['std']:.2f}", fail
 
 
+_REGION_NAMES = {"auto": "the tracker's default for a chain (`TrackerConfig.region_modality` \"auto\")",
+                 "levelset": "the dense level set (the paper's, at native-resolution crops)",
+                 "lines": "the correspondence lines (contour points from a render per frame, native-resolution crops)"}
+
+
 def report(args, command, rows, elapsed, load) -> str:
     lines = [
         "# Human motion, Table II: knee and elbow angle errors", "",
@@ -216,8 +228,8 @@ def report(args, command, rows, elapsed, load) -> str:
         f"{args.frames / 120:.2f} s of motion; the paper tracks 180), 4 cameras at {round(640 * args.scale) // 4 * 4}x"
         f"{round(480 * args.scale) // 4 * 4}, appearance '{args.appearance}', rendered by the independent ray caster; "
         "26-DoF body model of capsules (the tracker tracks the same model that rendered the images)."), "",
-        (f"Region cue on chains: {_region_settings(args)} (`jaxtrack.track` CHAIN_REGION with this run's overrides); "
-         "one configuration per subprocess."), "",
+        (f"Region cue (\"region\" in the cues): {_REGION_NAMES[args.region]}; on chains {_region_settings(args)} "
+         "(`jaxtrack.track` CHAIN_REGION with this run's overrides); one configuration per subprocess."), "",
         (f"Error: |estimated − true| of {', '.join(LIMBS)} over the tracked frames, mean ± std (degrees). Failure: the "
         f"first frame with any joint off by more than {FAIL_DEG:.0f}°."), "",
         ("| motion | cues | fps | frames | knee + elbow error (°) | max (°) | first failure | root (° / mm) | s / frame | "
@@ -231,7 +243,7 @@ def report(args, command, rows, elapsed, load) -> str:
             continue
         err, fail = _cell(r)
         lines.append(f"| {motion} | {subset} | {fps} | {r['frames']} | {err} | {r['max']:.1f} | {fail} | "
-                     f"{r['root_deg']:.2f} / {r['root_mm']:.1f} | {r['s_per_frame']:.1f} | {r['lost_joint_frames']} |")
+                     f"{r['root_deg']:.2f} / {r['root_mm']:.1f} | {r['s_per_frame']:.2f} | {r['lost_joint_frames']} |")
     lines += ["", ("The paper (real images of a subject in a dark suit, 4 cameras, all cues): "
               f"{PAPER['120']}° at 120 fps, {PAPER['24']}° at 24 fps; region only fails at 40 fps and below; flow "
               "only drifts. Goal: ≤ 4° with all cues at every frame rate and no failure at 24 fps."), ""]
@@ -287,6 +299,8 @@ def main(argv=None):
     ap.add_argument("--frames", type=int, default=60, help="mocap frames (at 120/s) per motion")
     ap.add_argument("--scale", type=float, default=0.5, help="image scale of 640x480")
     ap.add_argument("--appearance", default="photo", choices=("photo", "suit", "parts"))
+    ap.add_argument("--region", default="auto", choices=("auto", "levelset", "lines"),
+                    help="the region modality \"region\" stands for (default: the tracker's for a chain)")
     ap.add_argument("--budget-min", type=float, default=60.0, help="start no new run after this many minutes")
     ap.add_argument("--seq-dir", default=None, help="keep the rendered sequences here (default: a temporary folder)")
     ap.add_argument("--out", default=str(RESULTS / "human_table2.md"))
@@ -336,7 +350,7 @@ def main(argv=None):
                     continue
                 want_overlay = not overlay_done and subset == "region+flow+sift" and args.overlay
                 frames_dir = folder / f"overlay_{motion}_{fps}" if want_overlay else None
-                r = run_in_subprocess(seqs[fps], subset, fps, frames_dir, region)
+                r = run_in_subprocess(seqs[fps], subset, fps, frames_dir, region, args.region)
                 if r is not None and frames_dir is not None:
                     last = max(frames_dir.glob("*.png"))
                     pathlib.Path(args.overlay).write_bytes(last.read_bytes())
@@ -348,7 +362,7 @@ def main(argv=None):
                     continue
                 err, fail = _cell(r)
                 print(f"{motion:5s} {subset:17s} {fps:3d} fps: {err}°, failure {fail}, root {r['root_deg']:.2f}° "
-                      f"{r['root_mm']:.1f} mm, {r['s_per_frame']:.1f} s/frame", flush=True)
+                      f"{r['root_mm']:.1f} mm, {r['s_per_frame']:.2f} s/frame", flush=True)
     text = report(args, command, rows, clock.elapsed_s(), (clock.load_start[0], os.getloadavg()[0]))
     print(text)
     if args.out:
