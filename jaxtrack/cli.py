@@ -1124,8 +1124,8 @@ def build_parser() -> argparse.ArgumentParser:
     track.add_argument("--joint-limits", dest="joint_limits", action="store_true",
                        help="articulated (URDF) models: keep the joints within the URDF's limits (off: the method uses no priors)")
     track.add_argument("--region", choices=region_choices(), default=None,
-                       help="the region modality that 'region' in --cues means (default auto: lines for a rigid object, "
-                       "levelset for a URDF chain)")
+                       help="the region modality that 'region' in --cues means (default auto: the correspondence lines, for a rigid object and a chain; "
+                       "levelset: the paper's dense level set)")
     track.add_argument("--working-shape", dest="working_shape", metavar="HxW|native", type=_working_shape, default="default",
                        help="fixed working resolution of the crops (one compiled step whatever the object's size on "
                        "screen), or 'native' for crops at the frame's resolution in size classes (default: the "

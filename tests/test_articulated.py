@@ -161,9 +161,11 @@ def test_tracks_a_short_mocap_walk_with_two_cameras(shared_data, tmp_path):
     within bounds measured on this sequence, and the step compiles once per crop size class (no
     recompilation per frame).
 
-    Measured: knee/elbow errors up to 9.35° (left knee), every joint up to 10.8° (right foot), root up to
-    5.3° / 16 mm (bounds with a margin). In the dark suit the left knee ends 26.5° off: with two cameras
-    and a uniform dark body the crossing legs are hard to tell apart."""
+    Measured with the correspondence lines (the default region modality for chains since 2026-11-27): knee/elbow
+    errors up to 6.28° (left knee), every joint up to 13.24° (right foot), root up to 3.35° / 12.2 mm; with the
+    level set before: 9.35°, 10.8°, 5.3° / 16 mm (bounds with a margin over both). In the dark suit the left knee
+    ended 26.5° off with the level set: with two cameras and a uniform dark body the crossing legs are hard to
+    tell apart."""
     import equinox as eqx
 
     import jaxtrack as jt

@@ -75,9 +75,11 @@ def test_a_registered_modality_is_a_tracker_choice_with_its_own_tag():
     assert tag not in (int(Cue.REGION), int(Cue.FLOW), int(Cue.SIFT))
     config = jt.TrackerConfig(cues=("region", "fixed_points"))
     mods = config.modalities()
-    # "region" is the configured region modality ("auto": lines for a rigid object, the level set for a chain)
+    # "region" is the configured region modality ("auto": the lines, for a rigid object and for a chain)
     assert [m.name for m in mods] == ["lines", "fixed_points"] and config.cue_names == ("region", "fixed_points")
-    assert [m.name for m in config.resolved(articulated=True).modalities()] == ["levelset", "fixed_points"]
+    assert [m.name for m in config.resolved(articulated=True).modalities()] == ["lines", "fixed_points"]
+    chain = jt.TrackerConfig(cues=("region", "fixed_points"), region_modality="levelset").resolved(articulated=True)
+    assert [m.name for m in chain.modalities()] == ["levelset", "fixed_points"]
     with pytest.raises(ValueError, match="twice"):
         jt.TrackerConfig(cues=("region", "lines"))
     from jaxtrack.cli import cue_choices

@@ -102,10 +102,12 @@ class TrackerConfig(eqx.Module):
             (`region_modality`), or `Modality` instances. Default ("region", "flow", "sift").
         region_modality: which modality "region" means: "levelset" (the paper's dense level set), "lines"
             (the region energy on correspondence lines, `jaxtrack.cues.lines.LineRegion`) or "auto" (the
-            default): lines for a rigid object, the level set for a kinematic chain (`resolved`; measured in
+            default): the lines, for rigid objects and chains (`resolved`; measured in
             experiments/results/real_sequences_*.md and track_presets_lines.md: on rigid objects the lines
-            track the real video and the tea box better at a twentieth of the time; on chains only the level
-            set has been measured (Table II)).
+            track the real video and the tea box better at a twentieth of the time; on chains, Table II's walk
+            and run and the robot arm (human_table2_lines.md, robot_arm_lines.md): smaller knee and elbow errors
+            at every frame rate in a third of the time). The level set's per-limb support
+            (`FrameResult.part_support`, `TrackingRun.lost_joints`) needs its segmentation: -1 / none with the lines.
         occlusion: run the model-based occlusion detection (r(x) for flow, the SIFT mask).
         region: the level-set modality's settings (iterations, rounds (10 here), contour capacity, ...);
             its `outer_iterations` and `solver_steps` are the refinement's rounds and Gauss-Newton steps.
@@ -120,8 +122,8 @@ class TrackerConfig(eqx.Module):
             around the object (box plus margin) is resampled to it with the scale as data
             (`jaxtrack.image.sample_window`, `crop_camera(..., scale)`): one compiled step whatever the
             object's size on screen, and the flow, occlusion and renders of the crops at that size. None:
-            crops cut at the native resolution in size classes (one compilation per class); the level set's
-            chains keep them (the working resolution is not measured on Table II).
+            crops cut at the native resolution in size classes (one compilation per class); chains keep them
+            (the working resolution is not measured on Table II).
         recovery: the search after a LOST frame (`RecoveryConfig`, `jaxtrack.track.Tracker.step`; where `recovers`
             holds), or None (the default): a lost frame is reported and tracking goes on from its pose. Off by default:
             on the loss experiment's sequences it recovered no frame (experiments/results/recovery.md).
@@ -178,12 +180,12 @@ class TrackerConfig(eqx.Module):
 
     def resolved(self, articulated: bool) -> TrackerConfig:
         """This configuration with "auto" resolved for a rigid object (lines; crops at `RIGID_WORKING_SHAPE` unless
-        the level set is configured) or a chain (the level set; native-resolution crops). With a working shape the
+        the level set is configured) or a chain (lines; native-resolution crops). With a working shape the
         flow pyramid runs down to `WORKING_FLOW_MIN_SIZE` (the crop is small: it needs its levels to reach the
         motion)."""
         out = self
         if self.region_modality == "auto":
-            out = dataclasses.replace(out, region_modality="levelset" if articulated else "lines")
+            out = dataclasses.replace(out, region_modality="lines")
         if isinstance(self.working_shape, str):  # "auto": not with the level set (measured at native crops only)
             dense = any(m.name == "levelset" for m in out.modalities())
             out = dataclasses.replace(out, working_shape=None if articulated or dense else RIGID_WORKING_SHAPE)

@@ -267,7 +267,7 @@ class Tracker:
         if int(np.max(np.asarray(mesh.vertex_part))) >= self.model.num_parts:
             raise ValueError(f"mesh has parts up to {int(np.max(np.asarray(mesh.vertex_part)))} but the model has "
                              f"{self.model.num_parts} part(s)")
-        # "auto" region modality: correspondence lines for a rigid object, the level set for a chain.
+        # "auto" region modality: the correspondence lines (rigid objects and chains); working resolution for rigid ones.
         self.config = (TrackerConfig() if config is None else config).resolved(self.model.num_joints > 0)
         self.user_params = params
         self.sift = SiftConfig() if sift is None else sift
