@@ -99,7 +99,7 @@ def score(run, seq, fps: int) -> dict:
 
 
 def run_one(seq_path: pathlib.Path, subset: str, fps: int, overlay: pathlib.Path | None = None,
-            region_modality: str = "auto") -> dict:
+            region_modality: str = "auto", working_shape: tuple[int, int] | None = None) -> dict:
     from jaxtrack.io import read_sequence
     from jaxtrack.track import track_sequence
 
@@ -109,7 +109,8 @@ def run_one(seq_path: pathlib.Path, subset: str, fps: int, overlay: pathlib.Path
         recorder = _overlay_recorder(seq, overlay)
     t0 = time.perf_counter()
     run = track_sequence(seq, cues=tuple(subset.split("+")), progress=False, on_frame=recorder,
-                         region=None if region_modality == "auto" else region_modality)
+                         region=None if region_modality == "auto" else region_modality,
+                         working_shape="default" if working_shape is None else tuple(working_shape))
     if recorder is not None:
         recorder.writer.close()
     out = score(run, seq, fps)
@@ -133,7 +134,7 @@ def run_one(seq_path: pathlib.Path, subset: str, fps: int, overlay: pathlib.Path
 
 
 def run_in_subprocess(seq_path: pathlib.Path, subset: str, fps: int, overlay: pathlib.Path | None, region: dict,
-                      region_modality: str = "auto") -> dict | None:
+                      region_modality: str = "auto", working_shape: str | None = None) -> dict | None:
     """`run_one` in a fresh Python: every configuration compiles its own 4-camera programs (or loads them from
     the on-disk cache), and one process holding ~10 of them ran out of LLVM section memory (the mappings
     of the compiled code; it died on the 11th). None when the child fails (its stderr tail is printed)."""
@@ -141,6 +142,8 @@ def run_in_subprocess(seq_path: pathlib.Path, subset: str, fps: int, overlay: pa
         result = pathlib.Path(tmp) / "result.json"
         cmd = [sys.executable, __file__, "--one", str(seq_path), subset, str(fps), "--result", str(result),
                "--region", json.dumps(region), "--region-modality", region_modality]
+        if working_shape:
+            cmd += ["--working-shape", working_shape]
         if overlay is not None:
             cmd += ["--overlay-dir", str(overlay)]
         proc = subprocess.run(cmd, check=False, capture_output=True, text=True)
@@ -164,6 +167,7 @@ def _child(argv) -> None:
     ap.add_argument("--overlay-dir", default=None)
     ap.add_argument("--region", default="{}")
     ap.add_argument("--region-modality", default="auto")
+    ap.add_argument("--working-shape", default=None)
     args = ap.parse_args(argv)
     region = json.loads(args.region)
     if region:  # the experiment's knob on the chain defaults (tangent weight, joint prior)
@@ -172,7 +176,7 @@ def _child(argv) -> None:
         _tracker.CHAIN_REGION = {**_tracker.CHAIN_REGION, **region}
     seq, subset, fps = args.one
     out = run_one(pathlib.Path(seq), subset, int(fps), pathlib.Path(args.overlay_dir) if args.overlay_dir else None,
-                  args.region_modality)
+                  args.region_modality, _shape(args.working_shape))
     out["curves"] = [np.asarray(c).tolist() for c in out["curves"]]
     pathlib.Path(args.result).write_text(json.dumps(out))
 
@@ -213,6 +217,17 @@ def _cell(r) -> str:
     return f"{r['mean']:.2f} ± {r['std']:.2f}", fail
 
 
+def _shape(text: str | None) -> tuple[int, int] | None:
+    """`--working-shape HxW` → (h, w); None stays None (native-resolution crops)."""
+    if not text:
+        return None
+    try:
+        h, w = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise SystemExit(f"human_table2: --working-shape must be HxW, e.g. 128x96, got {text!r}") from None
+    return h, w
+
+
 _REGION_NAMES = {"auto": "the tracker's default for a chain (`TrackerConfig.region_modality` \"auto\")",
                  "levelset": "the dense level set (the paper's, at native-resolution crops)",
                  "lines": "the correspondence lines (contour points from a render per frame, native-resolution crops)"}
@@ -228,7 +243,9 @@ def report(args, command, rows, elapsed, load) -> str:
         f"{args.frames / 120:.2f} s of motion; the paper tracks 180), 4 cameras at {round(640 * args.scale) // 4 * 4}x"
         f"{round(480 * args.scale) // 4 * 4}, appearance '{args.appearance}', rendered by the independent ray caster; "
         "26-DoF body model of capsules (the tracker tracks the same model that rendered the images)."), "",
-        (f"Region cue (\"region\" in the cues): {_REGION_NAMES[args.region]}; on chains {_region_settings(args)} "
+        (f"Region cue (\"region\" in the cues): {_REGION_NAMES[args.region]}; crops "
+         f"{'resampled to ' + args.working_shape if args.working_shape else 'at the native resolution'}; "
+         f"on chains {_region_settings(args)} "
          "(`jaxtrack.track` CHAIN_REGION with this run's overrides); one configuration per subprocess."), "",
         (f"Error: |estimated − true| of {', '.join(LIMBS)} over the tracked frames, mean ± std (degrees). Failure: the "
         f"first frame with any joint off by more than {FAIL_DEG:.0f}°."), "",
@@ -299,6 +316,8 @@ def main(argv=None):
     ap.add_argument("--frames", type=int, default=60, help="mocap frames (at 120/s) per motion")
     ap.add_argument("--scale", type=float, default=0.5, help="image scale of 640x480")
     ap.add_argument("--appearance", default="photo", choices=("photo", "suit", "parts"))
+    ap.add_argument("--working-shape", default=None, metavar="HxW",
+                    help="resample the crops to this fixed working resolution (default: native-resolution crops)")
     ap.add_argument("--region", default="auto", choices=("auto", "levelset", "lines"),
                     help="the region modality \"region\" stands for (default: the tracker's for a chain)")
     ap.add_argument("--budget-min", type=float, default=60.0, help="start no new run after this many minutes")
@@ -321,6 +340,7 @@ def main(argv=None):
         args.overlay = str(out.with_name(out.stem + "_overlay.png")) if out else None
     region = {k: v for k, v in (("tangent_weight", args.tangent_weight), ("joint_prior", args.joint_prior)) if v is not None}
     args.motions = [m.strip() for m in args.motions.split(",") if m.strip()]
+    _shape(args.working_shape)  # a malformed shape stops here, not in every child
     fps_list = [int(f) for f in args.fps.split(",")]
     for m in args.motions:
         if m not in MOTIONS:
@@ -350,7 +370,7 @@ def main(argv=None):
                     continue
                 want_overlay = not overlay_done and subset == "region+flow+sift" and args.overlay
                 frames_dir = folder / f"overlay_{motion}_{fps}" if want_overlay else None
-                r = run_in_subprocess(seqs[fps], subset, fps, frames_dir, region, args.region)
+                r = run_in_subprocess(seqs[fps], subset, fps, frames_dir, region, args.region, args.working_shape)
                 if r is not None and frames_dir is not None:
                     last = max(frames_dir.glob("*.png"))
                     pathlib.Path(args.overlay).write_bytes(last.read_bytes())
