@@ -203,3 +203,14 @@ def test_first_frame_compile_quick(tmp_path):
     (row,) = runs["lines"]
     assert row["xla_s"] > 0 and row["first_frame_s"] >= row["start_s"] > 0 and row["largest_xla_s"]
     assert "| region | 1 |" in (tmp_path / "c.md").read_text()
+
+
+def test_human_table2_checks_its_working_shape_and_region_options():
+    """experiments/human_table2.py: `--working-shape HxW` is parsed once, before any sequence is rendered; a malformed
+    one and an unknown `--region` stop with a message naming the option."""
+    module = _load("human_table2")
+    assert module._shape("128x96") == (128, 96) and module._shape(None) is None
+    with pytest.raises(SystemExit, match="--working-shape must be HxW"):
+        module.main(["--working-shape", "128", "--out", ""])
+    with pytest.raises(SystemExit):
+        module.main(["--region", "dense", "--out", ""])
