@@ -674,7 +674,10 @@ class Tracker:
         host = self.host_inputs(state, frames, timings)
         host_s = time.perf_counter() - host_start
         if thread is not None:
-            _track_step_jit.compile(setup, state, frames_j, host, offsets_j, params, crop_shape, scales_j, early_like)
+            try:
+                _track_step_jit.compile(setup, state, frames_j, host, offsets_j, params, crop_shape, scales_j, early_like)
+            except Exception:  # noqa: BLE001, S110  (the call compiles again and reports it, or falls back)
+                pass
             thread.join()
         return host, host_s
 
