@@ -218,14 +218,17 @@ def _cell(r) -> str:
 
 
 def _shape(text: str | None) -> tuple[int, int] | None:
-    """`--working-shape HxW` → (h, w); None stays None (native-resolution crops)."""
+    """`--working-shape HxW` → (h, w) (checked as `jaxtrack track --working-shape`); None or "native": None
+    (native-resolution crops)."""
+    from jaxtrack.cli import _working_shape
+
     if not text:
         return None
     try:
-        h, w = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise SystemExit(f"human_table2: --working-shape must be HxW, e.g. 128x96, got {text!r}") from None
-    return h, w
+        shape = _working_shape(text)
+    except argparse.ArgumentTypeError as error:
+        raise SystemExit(f"human_table2: --working-shape must be HxW, e.g. 128x96, got {text!r}: {error}") from None
+    return shape if isinstance(shape, tuple) else None
 
 
 _REGION_NAMES = {"auto": "the tracker's default for a chain (`TrackerConfig.region_modality` \"auto\")",

@@ -298,13 +298,17 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
 
     def compile(self, *args, **kwargs) -> bool:
         """Compile the call's program without running it (or load the executable from the on-disk cache), making its
-        entry first if needed. Returns False, and does nothing, where the call runs `eqx.filter_jit`. XLA releases the
-        GIL: `Tracker.step` compiles its two programs at once on the first frame."""
+        entry first if needed. Returns False, and does nothing, where the call runs `eqx.filter_jit`; also False where
+        the compile fails, which is left to the call (it reports the error or falls back, as `__call__` does). XLA
+        releases the GIL: `Tracker.step` compiles its two programs at once on the first frame."""
         entry, dynamic, _ = self._resolve(args, kwargs)
         if entry is _PLAIN:
             return False
         if not entry.compiled:
-            entry.compile(dynamic)
+            try:
+                entry.compile(dynamic)
+            except Exception:  # noqa: BLE001  (the call compiles again and reports it, or falls back)
+                return False
         return True
 
     def dispatches_async(self, *args, **kwargs) -> bool:

@@ -633,14 +633,14 @@ class Tracker:
             setup = self.setup()
             early = None
             if self._overlaps_host():  # dispatched, not waited for: the device works while the host detects
-                if host is None and (crop_shape, scales is None, id(setup.window_plan)) not in self._compiled:
+                signature = (crop_shape, scales is None, id(setup.window_plan))
+                if host is None and signature not in self._compiled:
+                    self._compiled.add(signature)
                     host, host_s = self._compile_both(setup, state, frames, frames_j, offsets_j, params, crop_shape,
                                                       scales_j, timings)
                 early = _start_frame_jit.call_async(setup, state, frames_j, offsets_j, params, crop_shape, scales_j)
             if host is None:
-                host_start = time.perf_counter()
-                host = self.host_inputs(state, frames, timings)
-                host_s = time.perf_counter() - host_start
+                host, host_s = self._timed_host_inputs(state, frames, timings)
             new_state, result = _track_step_jit(setup, state, frames_j, host, offsets_j, params, crop_shape, scales_j,
                                                 early)
             if int(result.status) != Status.RENDER_OVERFLOW:
@@ -657,29 +657,24 @@ class Tracker:
         two executables load at once (XLA releases the GIL: a warm cache's two loads, 0.58 + 0.54 s on this 2-core
         CPU, take about the time of one). Only for kept programs (`persistent_jit`; the plain path compiles each at
         its first call). Returns (host inputs, their seconds)."""
-        self._compiled.add((crop_shape, scales_j is None, id(setup.window_plan)))
         start_args = (setup, state, frames_j, offsets_j, params, crop_shape, scales_j)
         early_like = _start_frame_jit.outputs_like(*start_args)  # its entry: traced and exported, or loaded
         thread = None
         if early_like is not None:
-            def compile_start_frame():
-                try:
-                    _start_frame_jit.compile(*start_args)
-                except Exception:  # noqa: BLE001, S110  (the call compiles again and reports it, or falls back)
-                    pass
-
-            thread = threading.Thread(target=compile_start_frame, daemon=True, name="jaxtrack-start-frame-compile")
+            thread = threading.Thread(target=_start_frame_jit.compile, args=start_args, daemon=True,
+                                      name="jaxtrack-start-frame-compile")
             thread.start()
-        host_start = time.perf_counter()
-        host = self.host_inputs(state, frames, timings)
-        host_s = time.perf_counter() - host_start
+        host, host_s = self._timed_host_inputs(state, frames, timings)
         if thread is not None:
-            try:
-                _track_step_jit.compile(setup, state, frames_j, host, offsets_j, params, crop_shape, scales_j, early_like)
-            except Exception:  # noqa: BLE001, S110  (the call compiles again and reports it, or falls back)
-                pass
+            _track_step_jit.compile(setup, state, frames_j, host, offsets_j, params, crop_shape, scales_j, early_like)
             thread.join()
         return host, host_s
+
+    def _timed_host_inputs(self, state, frames, timings):
+        """(`host_inputs`, the seconds they took)."""
+        start = time.perf_counter()
+        host = self.host_inputs(state, frames, timings)
+        return host, time.perf_counter() - start
 
     # --- recovery (issue 24) ------------------------------------------------------------------------
     def recovery_modality(self) -> int | None:
