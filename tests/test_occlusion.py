@@ -22,7 +22,7 @@ from jaxtrack.cues.occlusion import (
     patch_histogram_distance,
     update_appearance,
 )
-from jaxtrack.cues.occlusion._appearance import _detect_one
+from jaxtrack.cues.occlusion._appearance import _detection_inputs
 from jaxtrack.cues.occlusion._histogram import box_sum
 from jaxtrack.geometry import stack_cameras
 from jaxtrack.render import Renderer, make_mesh
@@ -88,9 +88,9 @@ def occluded_box(shared_data):
     atlas = make_texture_atlas(mesh, texel_mm=1.0)
     params = occlusion_params()
     renderer, step = Renderer(mesh, camera), _make_step(atlas, camera)
-    traces = eqx.debug.get_num_traces(_detect_one)
+    traces = eqx.debug.get_num_traces(_detection_inputs)
     maps, models, observations = _run(seq, renderer, step, atlas, params)
-    traces = eqx.debug.get_num_traces(_detect_one) - traces
+    traces = eqx.debug.get_num_traces(_detection_inputs) - traces
     names = ("seq", "mesh", "camera", "atlas", "params", "maps", "models", "obs", "renderer", "step", "traces")
     values = (seq, mesh, camera, atlas, params, maps, models, observations, renderer, step, traces)
     return dict(zip(names, values))
@@ -123,10 +123,10 @@ def test_protected_model_matches_the_clean_one(occluded_box):
     occluders; updating blindly (ignoring occlusion) copies the occluders into it."""
     seq_clean, _, _ = _scene("occluded-box", seed=1, occluders=0)
     atlas, params, renderer, step = (occluded_box[k] for k in ("atlas", "params", "renderer", "step"))
-    traces = eqx.debug.get_num_traces(_detect_one)
+    traces = eqx.debug.get_num_traces(_detection_inputs)
     _, clean_models, _ = _run(seq_clean, renderer, step, atlas, params)
     _, blind_models, _ = _run(occluded_box["seq"], renderer, step, atlas, params, protect=False)
-    assert eqx.debug.get_num_traces(_detect_one) == traces  # same compiled step, other sequences
+    assert eqx.debug.get_num_traces(_detection_inputs) == traces  # same compiled step, other sequences
     # Texels ever under an occluder while reliably visible.
     ever = np.zeros(atlas.num_texels, bool)
     for k in range(1, FRAMES):

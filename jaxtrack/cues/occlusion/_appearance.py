@@ -235,8 +235,20 @@ def model_image(atlas: TextureAtlas, appearance: AppearanceModel, rendered: Rend
     return jnp.where(known, appearance.texture[idx], 0.0), known
 
 
+class _DetectionInputs(eqx.Module):
+    """One camera's inputs to the histogram test (all (H, W)): M(x), the image through the same texel lookup, and
+    where a decision can be made."""
+
+    covered: jax.Array
+    known: jax.Array
+    model: jax.Array
+    image: jax.Array
+    valid: jax.Array
+    groups: jax.Array
+
+
 @eqx.debug.assert_max_traces(max_traces=None)  # counts traces (eqx.debug.get_num_traces); never fails
-def _detect_one(atlas, appearance, observation, rendered, params, config):
+def _detection_inputs(atlas, appearance, observation, rendered) -> _DetectionInputs:
     covered = rendered.face_id >= 0
     idx = texel_index(atlas, rendered.face_id, rendered.p_model)
     known = covered & appearance.seen[idx]
@@ -244,31 +256,20 @@ def _detect_one(atlas, appearance, observation, rendered, params, config):
     # The image seen through the same texel lookup as the model (see the module docstring).
     seen_now = covered & observation.visible[idx]
     image = jnp.where(seen_now, observation.value[idx], 0.0).astype(model.dtype)
-    valid = known & seen_now
     # Gains per group of similar surface normals (6 groups: the dominant signed model-frame axis).
     normal = atlas.texel_normal[idx]
     axis = jnp.argmax(jnp.abs(normal), -1)
     negative = jnp.take_along_axis(normal, axis[..., None], -1)[..., 0] < 0
     groups = (2 * axis + negative).astype(jnp.int32)
+    return _DetectionInputs(covered, known, model, image, known & seen_now, groups)
 
-    def decide(gain_mask):
-        gain = local_gain(model, image, gain_mask, config.gain_window, params.max_gain, groups, 6)
-        d, count = patch_histogram_distance(model * gain, image, valid, config.bins, config.window)
-        enough = count >= params.min_known * config.window**2
-        return d, covered & enough & (d > params.threshold)
 
-    # Two passes: the gain of the second ignores the pixels the first found occluded.
-    _, first = decide(valid)
-    d, occluded = decide(valid & ~first)
-    return OcclusionMap(
-        distance=jnp.where(covered, d, 0.0),
-        occluded=occluded,
-        data_weight=jnp.where(occluded, 0.0, 1.0).astype(model.dtype),
-        model_image=model,
-        known=known,
-        visible=covered & ~occluded,
-        near_occlusion=box_sum(occluded.astype(model.dtype)[..., None], config.init_margin)[..., 0] > 0.5,
-    )
+def _decide_one(inputs: _DetectionInputs, gain_mask, params, config):
+    """(H, W) histogram distance d (eq. 9) with the gains fitted on `gain_mask`, and (H, W) bool occluded."""
+    gain = local_gain(inputs.model, inputs.image, gain_mask, config.gain_window, params.max_gain, inputs.groups, 6)
+    d, count = patch_histogram_distance(inputs.model * gain, inputs.image, inputs.valid, config.bins, config.window)
+    enough = count >= params.min_known * config.window**2
+    return d, inputs.covered & enough & (d > params.threshold)
 
 
 def detect_occlusion(
@@ -281,6 +282,11 @@ def detect_occlusion(
 ) -> OcclusionMap:
     """Occlusion maps of C cameras at the current pose (eq. 9). Jittable (inline it in a tracker step).
 
+    Two passes: the gains of the second ignore the pixels the first found occluded. Where the first finds
+    nothing in any camera, the second would repeat it exactly; it is skipped (`lax.cond` over all cameras,
+    outside the per-camera vmap: under an outer vmap, e.g. a weight sweep, both branches run and the result
+    is the same).
+
     Args:
         atlas: texture layout of the mesh.
         appearance: the model f_{t−1}.
@@ -292,7 +298,20 @@ def detect_occlusion(
         `OcclusionMap` with a leading C axis.
     """
     config = OcclusionConfig() if config is None else config
-    return jax.vmap(lambda obs, ren: _detect_one(atlas, appearance, obs, ren, params, config))(observation, rendered)
+    inputs = jax.vmap(lambda obs, ren: _detection_inputs(atlas, appearance, obs, ren))(observation, rendered)
+    decide = jax.vmap(lambda x, mask: _decide_one(x, mask, params, config))
+    first_d, first = decide(inputs, inputs.valid)
+    d, occluded = jax.lax.cond(jnp.any(first), lambda: decide(inputs, inputs.valid & ~first), lambda: (first_d, first))
+    dtype = inputs.model.dtype
+    return OcclusionMap(
+        distance=jnp.where(inputs.covered, d, 0.0),
+        occluded=occluded,
+        data_weight=jnp.where(occluded, 0.0, 1.0).astype(dtype),
+        model_image=inputs.model,
+        known=inputs.known,
+        visible=inputs.covered & ~occluded,
+        near_occlusion=jax.vmap(lambda o: box_sum(o.astype(dtype)[..., None], config.init_margin)[..., 0] > 0.5)(occluded),
+    )
 
 
 def update_appearance(
