@@ -324,3 +324,43 @@ def test_dispatches_async_only_for_kept_programs(folder, monkeypatch):
     assert not double.dispatches_async(jnp.asarray(1.0))  # weakly typed: eqx.filter_jit
     monkeypatch.setattr(_exported, "_FOLDER", [None])
     assert not double.dispatches_async(x)
+
+
+_EAGER_SCRIPT = """
+import logging, numpy as np, jax, jax.numpy as jnp
+names = []
+class Names(logging.Handler):
+    def emit(self, record):
+        text = record.getMessage()
+        if text.startswith("Compiling "):
+            names.append(text.split()[1].removeprefix("jit(").rstrip(")"))
+logging.getLogger("jax").addHandler(Names())
+jax.config.update("jax_log_compiles", True)
+import jaxtrack as jt, trimesh
+from jaxtrack.render import make_mesh
+from jaxtrack.track import Tracker, TrackerConfig
+box = trimesh.creation.box((70.0, 50.0, 30.0))
+K = np.array([[90.0, 0, 38], [0, 90.0, 27], [0, 0, 1]])
+from jaxtrack.geometry import make_camera, stack_cameras
+rig = stack_cameras([make_camera(K, 76, 54), make_camera(K, 76, 54, t_cam_world=[5.0, 0, 0])])
+tracker = Tracker(make_mesh(box.vertices, box.faces), rig, config=TrackerConfig(cues=("region",)))
+frames = np.random.default_rng(0).integers(0, 255, (2, 54, 76, 3), np.uint8)
+T = np.eye(4); T[2, 3] = 350.0
+tracker.start(frames, T)
+print("NAMES", " ".join(names))
+"""
+
+
+def test_building_a_rig_a_mesh_and_starting_a_tracker_runs_no_eager_programs():
+    """Host values go to the device with `to_device` (`jax.device_put`), not `jnp.asarray`, and host planning runs in
+    numpy: in a fresh process each eager jnp operation (a copy "stage", a cast, a slice of a device array) compiles
+    a program of its own, 10-30 ms each; about 70 of them made a warm tracker start ~0.4 s slower. Only the tracker's
+    own programs compile here."""
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    proc = subprocess.run([sys.executable, "-c", _EAGER_SCRIPT], check=False, capture_output=True, text=True, env=env,
+                          timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    names = next(line.split()[1:] for line in proc.stdout.splitlines() if line.startswith("NAMES"))
+    assert names  # the tracker's programs are seen compiling
+    eager = [n for n in names if n == "stage" or hasattr(jnp, n) or hasattr(jax.lax, n)]
+    assert not eager, eager

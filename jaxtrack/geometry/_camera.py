@@ -16,7 +16,8 @@ import numpy as np
 import numpy.typing as npt
 from jax.typing import ArrayLike, DTypeLike
 
-from ._lie import make_transform, se3_inverse, transform_points
+from .._device import to_device
+from ._lie import se3_inverse, transform_points
 from ._validate import checked_array, checked_image_size, checked_intrinsics, checked_rotation
 
 
@@ -74,10 +75,12 @@ def make_camera(
     if d.size > 5:
         raise ValueError(f"camera dist must be at most 5 OpenCV coefficients (k1, k2, p1, p2, k3), got {d.size}")
     d = np.concatenate([d, np.zeros(5 - d.size)])
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
     return Camera(
-        K=jnp.asarray(K, dtype),
-        T_cam_world=make_transform(jnp.asarray(R, dtype), jnp.asarray(t, dtype)),
-        dist=jnp.asarray(d, dtype),
+        K=to_device(K, dtype),
+        T_cam_world=to_device(T, dtype),
+        dist=to_device(d, dtype),
         width=width,
         height=height,
     )
@@ -94,7 +97,12 @@ def stack_cameras(cameras: Iterable[Camera]) -> Camera:
     sizes = {(c.width, c.height) for c in cameras}
     if len(sizes) != 1:
         raise ValueError(f"cameras of a rig must share one image size, got {sorted(sizes)}")
-    return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *cameras)
+    def stack(*xs):  # concrete arrays on the host (an eager jnp.stack compiles a program per field), tracers in jnp
+        if any(isinstance(x, jax.core.Tracer) for x in xs):
+            return jnp.stack(xs)
+        return to_device(np.stack([np.asarray(x) for x in xs]))
+
+    return jax.tree_util.tree_map(stack, *cameras)
 
 
 def select_camera(cameras: Camera, index: ArrayLike) -> Camera:
@@ -206,6 +214,22 @@ def pixel_rays_world(camera: Camera, px: jax.Array):
     return origin, d_world
 
 
+def _crop_camera_host(camera: Camera, offset: np.ndarray, crop_shape: tuple[int, int], scale=None) -> Camera:
+    """`crop_camera` in numpy, the same arithmetic in the same dtype."""
+    dt = camera.K.dtype
+    oy, ox = offset[..., 0].astype(dt), offset[..., 1].astype(dt)
+    K = np.array(camera.K, copy=True)
+    if scale is None:
+        K[..., 0, 2] -= ox
+        K[..., 1, 2] -= oy
+    else:
+        s = np.asarray(scale, dt)
+        K[..., 0, 2] = (camera.K[..., 0, 2] - ox + dt.type(0.5)) / s - dt.type(0.5)
+        K[..., 1, 2] = (camera.K[..., 1, 2] - oy + dt.type(0.5)) / s - dt.type(0.5)
+        K[..., :2, :2] = camera.K[..., :2, :2] / s[..., None, None]
+    return Camera(K, camera.T_cam_world, camera.dist, width=crop_shape[1], height=crop_shape[0])
+
+
 def crop_camera(camera: Camera, offset, crop_shape: tuple[int, int], scale=None) -> Camera:
     """The camera seeing only the window at `offset` = (..., 2) (y0, x0) with `scale` s (..., full-frame
     pixels per window pixel; None: 1) of static size `crop_shape` (jittable).
@@ -213,8 +237,11 @@ def crop_camera(camera: Camera, offset, crop_shape: tuple[int, int], scale=None)
     The crop geometry of the tracker in one place: every modality and the renderer see the window through
     this camera. Window pixel (x, y) is full-frame pixel (x0 + s·(x + ½) − ½, y0 + s·(y + ½) − ½)
     (`jaxtrack.image.window_to_full`); with s = 1, pixels of the crop plus (x0, y0). Distortion is applied
-    before K, so it is unchanged.
+    before K, so it is unchanged. With numpy arrays (camera, offset, scale) it runs on the host and returns
+    a numpy `Camera` (host planning: no eager XLA programs).
     """
+    if isinstance(camera.K, np.ndarray) and isinstance(offset, np.ndarray):
+        return _crop_camera_host(camera, offset, crop_shape, scale)
     dt = camera.K.dtype
     oy, ox = offset[..., 0].astype(dt), offset[..., 1].astype(dt)
     if scale is None:

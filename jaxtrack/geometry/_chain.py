@@ -24,6 +24,7 @@ import numpy as np
 import numpy.typing as npt
 from jax.typing import DTypeLike
 
+from .._device import to_device
 from ._lie import se3_exp
 
 
@@ -59,10 +60,10 @@ class KinematicModel(eqx.Module):
 def rigid_model(dtype: DTypeLike = jnp.float32) -> KinematicModel:
     """A rigid object: one part, no joints."""
     return KinematicModel(
-        joint_twists=jnp.zeros((0, 6), dtype),
-        part_joints=jnp.zeros((1, 0), bool),
-        joint_parent_part=jnp.zeros((0,), jnp.int32),
-        joint_child_part=jnp.zeros((0,), jnp.int32),
+        joint_twists=to_device(np.zeros((0, 6), dtype)),  # host arrays: no eager XLA program per field
+        part_joints=to_device(np.zeros((1, 0), bool)),
+        joint_parent_part=to_device(np.zeros((0,), np.int32)),
+        joint_child_part=to_device(np.zeros((0,), np.int32)),
     )
 
 

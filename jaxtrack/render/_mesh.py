@@ -8,6 +8,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.typing import ArrayLike, DTypeLike
 
+from .._device import to_device
+
 
 class Mesh(eqx.Module):
     """A triangle mesh in the model frame (mm, zero configuration).
@@ -59,10 +61,10 @@ def make_mesh(
     if vertex_part.shape != (len(vertices),):
         raise ValueError(f"{name}: vertex_part must have shape ({len(vertices)},), got {vertex_part.shape}")
     return Mesh(
-        vertices=jnp.asarray(vertices, dtype),
-        faces=jnp.asarray(faces, jnp.int32),
-        vertex_part=jnp.asarray(vertex_part),
-        face_part=jnp.asarray(vertex_part[faces[:, 0]]),
+        vertices=to_device(vertices, dtype),
+        faces=to_device(faces, np.int32),
+        vertex_part=to_device(vertex_part),
+        face_part=to_device(vertex_part[faces[:, 0]]),
     )
 
 

@@ -364,9 +364,11 @@ def _front_facing(px_f):
 
 def _screen_faces(mesh, camera, T_world_root, theta, model, cull_backfaces):
     """Host planning: projected faces (F, 3, 2), clipped box sides (F, 2) and the on-screen mask."""
-    model = rigid_model(mesh.vertices.dtype) if model is None else model
-    theta = jnp.zeros((model.num_joints,), mesh.vertices.dtype) if theta is None else jnp.asarray(theta, mesh.vertices.dtype)
-    return _screen_faces_jit(mesh, camera, jnp.asarray(T_world_root, mesh.vertices.dtype), theta, model, bool(cull_backfaces))
+    dtype = mesh.vertices.dtype
+    model = rigid_model(dtype) if model is None else model
+    # Arguments cast on the host (an eager cast compiles a program in every fresh process).
+    theta = np.zeros((model.num_joints,), dtype) if theta is None else np.asarray(theta, dtype)
+    return _screen_faces_jit(mesh, camera, np.asarray(T_world_root, dtype), theta, model, bool(cull_backfaces))
 
 
 def _screen_faces_body(mesh, camera, T_world_root, theta, model, cull_backfaces: bool):
@@ -396,7 +398,7 @@ def face_extents(
     Returns (F,) the longer side of each face's image-clipped bounding box.
     """
     _, sides, _ = _screen_faces(mesh, camera, T_world_root, theta, model, cull_backfaces)
-    return np.asarray(jnp.max(sides, axis=1))
+    return np.asarray(sides).max(axis=1)
 
 
 def tile_demand(
@@ -414,7 +416,7 @@ def tile_demand(
     These are what `render` puts in its tile pool (`RasterPlan.tile_faces`, `tile_capacity`).
     """
     tri, sides, _ = _screen_faces(mesh, camera, T_world_root, theta, model, cull_backfaces)
-    big = np.asarray(jnp.max(sides, axis=1) > threshold)
+    big = np.asarray(sides).max(axis=1) > threshold
     if not big.any():
         return 0, 0
     corners = _tile_corners(camera.width, camera.height, tile_size)

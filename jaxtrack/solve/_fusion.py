@@ -17,6 +17,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .._device import to_device
 from ._correspondences import Correspondences, Cue
 
 
@@ -30,10 +31,10 @@ class CueWeights(eqx.Module):
         sift_ratio: the method's 0.002 (SIFT weight per contour correspondence).
     """
 
-    region: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(1.0), converter=jnp.asarray)
-    flow: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(1.0), converter=jnp.asarray)
-    sift: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(1.0), converter=jnp.asarray)
-    sift_ratio: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(0.002), converter=jnp.asarray)
+    region: jax.Array = eqx.field(default_factory=lambda: to_device(1.0), converter=to_device)
+    flow: jax.Array = eqx.field(default_factory=lambda: to_device(1.0), converter=to_device)
+    sift: jax.Array = eqx.field(default_factory=lambda: to_device(1.0), converter=to_device)
+    sift_ratio: jax.Array = eqx.field(default_factory=lambda: to_device(0.002), converter=to_device)
 
 
 def fuse_cue_weights(corr: Correspondences, factors: CueWeights, prediction: bool = False) -> Correspondences:

@@ -31,6 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._device import to_device
 from .._exported import persistent_jit
 from .._status import Status
 from ..cues.flow import articulated_params, rigid_params
@@ -95,7 +96,7 @@ DEPTH_INVARIANT = 1.0
 
 
 def _as_array(scales):
-    return None if scales is None else jnp.asarray(scales)
+    return None if scales is None else to_device(scales)
 
 
 @persistent_jit
@@ -184,43 +185,46 @@ def default_params(
         raise ValueError(f"pose_prior must be (rotation, translation[, rotation_abs, translation_abs, follows_round]), "
                          f"finite numbers ≥ 0, got {pose_prior}")
     flow = rigid_params() if model.num_joints == 0 else articulated_params()
-    flow = jax.tree.map(lambda a: jnp.asarray(a, dtype), flow)
+    def device(a):
+        return to_device(a, dtype)
+
+    flow = jax.tree.map(device, flow)
     beta = 3.0 if flow.robust_smoothness else 12.0
     J = model.num_joints
-    lower, upper = jnp.full((J,), -jnp.inf, dtype), jnp.full((J,), jnp.inf, dtype)
+    lower, upper = device(np.full((J,), -np.inf)), device(np.full((J,), np.inf))
     if joint_limits is not None:
         lo, hi = (np.asarray(a, np.float64) for a in joint_limits)
         if lo.shape != (J,) or hi.shape != (J,) or np.any(np.isnan(lo)) or np.any(np.isnan(hi)) or np.any(lo > hi):
             raise ValueError(f"joint_limits must be (lower, upper) of shape ({J},) with lower ≤ upper, got shapes "
                              f"{lo.shape}, {hi.shape}")
-        lower, upper = jnp.asarray(lo, dtype), jnp.asarray(hi, dtype)
+        lower, upper = device(lo), device(hi)
     return TrackerParams(
-        weights=jax.tree.map(lambda a: jnp.asarray(a, dtype), weights),
+        weights=jax.tree.map(device, weights),
         flow=flow,
-        flow_beta=jnp.asarray(beta, dtype),
+        flow_beta=device(beta),
         region=region_params(crop_shape, dtype, **(CHAIN_REGION if J else {})),
         sift=sift_params(dtype=dtype),
         occlusion=occlusion_params(dtype=dtype) if occlusion is None else occlusion,
-        lost_iou=jnp.asarray(0.5, dtype),
-        uncertain_iou=jnp.asarray(0.8, dtype),
-        inlier_px=jnp.asarray(3.0, dtype),
+        lost_iou=device(0.5),
+        uncertain_iou=device(0.8),
+        inlier_px=device(3.0),
         theta_lower=lower,
         theta_upper=upper,
-        pose_prior_rotation=jnp.asarray(prior[0], dtype),
-        pose_prior_translation=jnp.asarray(prior[1], dtype),
-        render_reuse_px=jnp.asarray(RENDER_REUSE_PX, dtype),
-        pose_prior_rotation_abs=jnp.asarray(prior[2], dtype),
-        pose_prior_translation_abs=jnp.asarray(prior[3], dtype),
-        prior_follows_round=jnp.asarray(prior[4], dtype),
+        pose_prior_rotation=device(prior[0]),
+        pose_prior_translation=device(prior[1]),
+        render_reuse_px=device(RENDER_REUSE_PX),
+        pose_prior_rotation_abs=device(prior[2]),
+        pose_prior_translation_abs=device(prior[3]),
+        prior_follows_round=device(prior[4]),
         lines=line_params(dtype),
-        line_learning_rate=jnp.asarray(0.2, dtype),
-        loss_weights=jnp.asarray(LOSS_WEIGHTS, dtype),
-        uncertain_confidence=jnp.asarray(0.5, dtype),
-        lost_confidence=jnp.asarray(0.25, dtype),
-        flow_structure=jnp.asarray(FLOW_STRUCTURE, dtype),
-        flow_limb_slope=jnp.asarray(FLOW_LIMB_SLOPE if J == 0 else -1.0, dtype),
-        rows_per_px=jnp.asarray(ROWS_PER_PX, dtype),
-        depth_invariant=jnp.asarray(DEPTH_INVARIANT if J == 0 else 0.0, dtype),
+        line_learning_rate=device(0.2),
+        loss_weights=device(LOSS_WEIGHTS),
+        uncertain_confidence=device(0.5),
+        lost_confidence=device(0.25),
+        flow_structure=device(FLOW_STRUCTURE),
+        flow_limb_slope=device(FLOW_LIMB_SLOPE if J == 0 else -1.0),
+        rows_per_px=device(ROWS_PER_PX),
+        depth_invariant=device(DEPTH_INVARIANT if J == 0 else 0.0),
     )
 
 
@@ -349,7 +353,12 @@ class Tracker:
         theta = np.zeros(J) if theta is None else np.asarray(theta, np.float64)
         if theta.shape != (J,) or not np.all(np.isfinite(theta)):
             raise ValueError(f"theta must be ({J},) finite joint angles, got shape {theta.shape}")
-        return jnp.asarray(T, self.dtype), jnp.asarray(theta, self.dtype)
+        return to_device(T, self.dtype), to_device(theta, self.dtype)
+
+    def _host_cameras(self) -> Camera:
+        """The rig as numpy arrays, for host-side planning (slicing or cropping device arrays op by op compiles
+        a small program per operation in a fresh process)."""
+        return jax.tree.map(np.asarray, self.cameras)
 
     def _replan(self, T, theta, windows=None, poses=()):
         """Raster plans for the pose (T, Θ), merged with the old ones: the full frame's and, at the fixed working
@@ -362,11 +371,11 @@ class Tracker:
         turn toward the camera) times `_window_growth` (the object growing inside the window); faces that
         shrink spill into the larger classes, so one plan serves every distance and the step compiles once.
         """
-        self.plan = replan(self.plan, self.mesh, self.cameras, T, theta, self.model, self.replans)
+        self.plan = replan(self.plan, self.mesh, self._host_cameras(), T, theta, self.model, self.replans)
         if self.config.working_shape is not None and self.config.uses_crop():
             offsets, shape, scales = self.windows(T, theta) if windows is None else windows
             if offsets is not None:
-                cams = crop_camera(self.cameras, jnp.asarray(offsets), shape, jnp.asarray(scales))
+                cams = crop_camera(self._host_cameras(), np.asarray(offsets), shape, np.asarray(scales))
                 plan = self.crop_plan
                 for T_k, theta_k in ((T, theta),) + tuple(poses):
                     plan = replan(plan, self.mesh, cams, T_k, theta_k, self.model, self.replans)
@@ -489,18 +498,19 @@ class Tracker:
         if self.atlas is None:
             texel = self.texel_mm
             if texel is None:  # about one crop pixel at the first pose (a working-resolution pixel when resampled)
-                depth = float(np.asarray((self.cameras.T_cam_world[0] @ T)[2, 3]))
+                rig = self._host_cameras()
+                depth = float((np.asarray(rig.T_cam_world[0], np.float64) @ np.asarray(T, np.float64))[2, 3])
                 scale = 1.0 if scales is None else float(np.max(scales))
-                texel = max(0.25, scale * depth / float(np.asarray(self.cameras.K[0, 0, 0])))
+                texel = max(0.25, scale * depth / float(rig.K[0, 0, 0]))
             self.atlas = make_texture_atlas(self.mesh, texel_mm=texel)
-        sil, appearance = self._initial_appearance(jnp.asarray(frames), T, theta, offsets, crop_shape, scales)
+        sil, appearance = self._initial_appearance(to_device(frames), T, theta, offsets, crop_shape, scales)
         # The first frame's pose is known: every modality learns its state there (the level set's local
         # densities, so the next frame's first iterations use densities of the right regions, Section IV).
         setup = self.setup()
         # Frames t live in the state as they came: 8-bit frames stay uint8 (a quarter of the bytes to copy and
         # move), others in the tracker's dtype. Later frames are cast to the same dtype: one program.
         self.frame_dtype = np.uint8 if frames.dtype == np.uint8 else np.dtype(self.dtype)
-        states = _initial_modality_states(setup, jnp.asarray(frames, self.dtype), jnp.asarray(offsets), T, theta,
+        states = _initial_modality_states(setup, to_device(frames, self.dtype), to_device(offsets), T, theta,
                                           self.params_for(crop_shape), crop_shape, _as_array(scales),
                                           None if occluder_depth is None else jnp.asarray(occluder_depth, self.dtype))
         self.keyframes = None
@@ -509,8 +519,8 @@ class Tracker:
                                            self.config.recovery.keyframes, self.sift)
             self._add_keyframe(frames, np.asarray(sil), T)
         return TrackerState(
-            T_world_root=T, theta=theta, images=jnp.asarray(self._frames_as_state(frames)),
-            data_weight=jnp.ones((self.num_cameras, H, W), self.dtype), visible=sil, appearance=appearance,
+            T_world_root=T, theta=theta, images=to_device(self._frames_as_state(frames)),
+            data_weight=to_device(np.ones((self.num_cameras, H, W), self.dtype)), visible=sil, appearance=appearance,
             modalities=states, occluder_depth=None if occluder_depth is None else jnp.asarray(occluder_depth, self.dtype),
         )
 
@@ -521,8 +531,8 @@ class Tracker:
         params = self.params_for((self.cameras.height, self.cameras.width)).occlusion
         if scales is None:
             return _initial_appearance_jit(setup, frames, T, theta, params)
-        return _initial_appearance_jit(setup, frames, T, theta, params, jnp.asarray(offsets), tuple(crop_shape),
-                                       jnp.asarray(scales))
+        return _initial_appearance_jit(setup, frames, T, theta, params, to_device(offsets), tuple(crop_shape),
+                                       to_device(scales))
 
     def _frames_as_state(self, frames: np.ndarray) -> np.ndarray:
         """Checked frames in the state's image dtype (`frame_dtype`, fixed by `start`)."""
@@ -571,12 +581,12 @@ class Tracker:
         offsets, crop_shape, scales = (self.windows(state.T_world_root, state.theta, before) if on_screen.any()
                                        else (None, None, None))
         if offsets is None:  # behind a camera or outside every image: keep the pose, report it out of view
-            lost = eqx.tree_at(lambda s: s.images, state, jnp.asarray(self._frames_as_state(frames)))
+            lost = eqx.tree_at(lambda s: s.images, state, to_device(self._frames_as_state(frames)))
             timings["total_s"] = time.perf_counter() - start
             return lost, self._out_of_view(state), {"timings": timings, "offsets": None, "crop_shape": None, "scales": None,
                                                     "recovery": None}
         params = self.params_for(crop_shape) if params is None else params
-        frames_j = jnp.asarray(self._frames_as_state(frames))
+        frames_j = to_device(self._frames_as_state(frames))
         step_start = time.perf_counter()
         new_state, result, host_s = self._run_step(state, frames, frames_j, offsets, params, crop_shape, scales, timings=timings)
         timings["step_s"] = time.perf_counter() - step_start - host_s
@@ -627,7 +637,7 @@ class Tracker:
 
         The host inputs (`host_inputs`, unless given) are made after `start_frame` is dispatched where the host's
         work can overlap the device's (`overlap_host`). Returns (state, result, seconds spent making host inputs)."""
-        offsets_j, scales_j = jnp.asarray(offsets), _as_array(scales)
+        offsets_j, scales_j = to_device(offsets), _as_array(scales)
         host_s = 0.0
         for _ in range(3):
             setup = self.setup()
@@ -737,7 +747,7 @@ class Tracker:
             raise ValueError("recover: this tracker has no recovery (needs TrackerConfig.recovers() and a rigid object)")
         if self._recovery_warmup is not None:  # its compile, not a second one
             self._recovery_warmup.join()
-        frames_j = jnp.asarray(self._frames_as_state(self.check_frames(frames, "frames")))
+        frames_j = to_device(self._frames_as_state(self.check_frames(frames, "frames")))
         params = self.params_for(self.crop_shape) if params is None else params
         reference = state.T_world_root if reference is None else jnp.asarray(reference, self.dtype)
         good = state.T_world_root if self.last_good_pose is None else self.last_good_pose

@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 from jax.typing import ArrayLike
 
+from ..._device import to_device
 from ...image import as_channels as _channels
 from ...image import image_gradients, warp_bilinear
 from ._quarters import ip, kp
@@ -46,12 +47,12 @@ class FlowEnergyParams(eqx.Module):
 
 def articulated_params() -> FlowEnergyParams:
     """The paper's articulated setting: robust smoothness, α = 50, γ = 5, ε = 0.001."""
-    return FlowEnergyParams(jnp.asarray(50.0), jnp.asarray(5.0), jnp.asarray(1e-3), True)
+    return FlowEnergyParams(to_device(50.0), to_device(5.0), to_device(1e-3), True)
 
 
 def rigid_params() -> FlowEnergyParams:
     """The paper's rigid setting: quadratic smoothness, α = 800, γ = 5, ε = 0.001."""
-    return FlowEnergyParams(jnp.asarray(800.0), jnp.asarray(5.0), jnp.asarray(1e-3), False)
+    return FlowEnergyParams(to_device(800.0), to_device(5.0), to_device(1e-3), False)
 
 
 def middlebury_params() -> FlowEnergyParams:

@@ -23,7 +23,9 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
+from ..._device import to_device
 from ._redistance import redistance
 
 
@@ -114,9 +116,9 @@ def region_params(crop_shape: tuple[int, int] = (256, 256), dtype=jnp.float32, *
             raise ValueError(f"region_params: unknown parameter {name!r}; choose from {sorted(values)}")
         values[name] = value
     for name, value in values.items():
-        if not jnp.all(jnp.asarray(value) >= 0):
+        if not np.all(np.asarray(value) >= 0):
             raise ValueError(f"region_params: {name} must be ≥ 0, got {value}")
-    return RegionParams(**{k: jnp.asarray(v, dtype) for k, v in values.items()})
+    return RegionParams(**{k: to_device(v, dtype) for k, v in values.items()})
 
 
 def heaviside(s, epsilon):

@@ -40,6 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..._device import to_device
 from ...geometry import Camera, KinematicModel, part_transforms, project_points, rigid_model, transform_points
 from ...solve import Correspondences, Cue, SolverConfig, correspondences_from_pixels, solve_pose
 from ._histograms import ColourHistograms, LogOddsTable, colour_index, learn_histograms, log_odds_of_cells
@@ -120,7 +121,7 @@ def line_params(
     model_occlusion_threshold=30.0,
 ) -> LineParams:
     """`LineParams` with M3T's defaults as arrays of `dtype`."""
-    a = lambda x: jnp.asarray(x, dtype)
+    a = lambda x: to_device(x, dtype)
     return LineParams(
         a(function_amplitude), a(function_slope), a(min_continuous_distance), a(posterior_prior), a(weight),
         a(unconsidered_line_length), a(max_considered_line_length), a(model_occlusion_threshold),

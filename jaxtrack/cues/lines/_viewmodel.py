@@ -37,6 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..._device import to_device
 from ...geometry import Camera, se3_inverse, transform_points
 from ...render import PATCH_SIZES, Mesh, RasterPlan, RenderOutput, plan_raster, render
 
@@ -476,8 +477,8 @@ def build_view_model(
     directions, _ = icosphere(subdivisions)
     K, T = _view_cameras(center, radius, directions, image_size, distance_factor)
     plan = _tight_plan(_face_extents_all(vertices, faces, K, T, image_size, cull_backfaces), cull_backfaces)
-    identity = jnp.eye(4, dtype=dtype)
-    Kj = jnp.asarray(K, dtype)
+    identity = to_device(np.eye(4), dtype)
+    Kj = to_device(K, dtype)
     max_contour = 16 * image_size
 
     def one_view(T_cam_world):
@@ -497,7 +498,7 @@ def build_view_model(
         Tb = T[start:stop]
         if stop - start < batch_size:  # pad the last batch: one compiled shape
             Tb = np.concatenate([Tb, np.repeat(Tb[-1:], batch_size - (stop - start), axis=0)])
-        points, count, overflow = run(jnp.asarray(Tb, dtype))
+        points, count, overflow = run(to_device(Tb, dtype))
         if bool(np.any(np.asarray(overflow)[: stop - start])):
             raise RuntimeError("build_view_model: a view overflowed the raster plan or had more than "
                                f"{max_contour} contour pixels")
@@ -508,14 +509,14 @@ def build_view_model(
     count = np.concatenate([c[1] for c in chunks])
     mm_per_px = (distance_factor * radius) / K[0, 0]
     return SparseViewModel(
-        directions=jnp.asarray(directions, dtype),
-        points=jnp.asarray(points.p_model, dtype),
-        normals=jnp.asarray(points.normal, dtype),
-        foreground_distance=jnp.asarray(points.foreground_distance, dtype),
-        background_distance=jnp.asarray(points.background_distance, dtype),
-        valid=jnp.asarray(points.valid),
-        center=jnp.asarray(center, dtype),
-        contour_length=jnp.asarray(count * mm_per_px, dtype),
+        directions=to_device(directions, dtype),
+        points=to_device(points.p_model, dtype),
+        normals=to_device(points.normal, dtype),
+        foreground_distance=to_device(points.foreground_distance, dtype),
+        background_distance=to_device(points.background_distance, dtype),
+        valid=to_device(points.valid),
+        center=to_device(center, dtype),
+        contour_length=to_device(count * mm_per_px, dtype),
     )
 
 
@@ -564,7 +565,7 @@ def load_view_model(path, dtype=jnp.float32) -> SparseViewModel:
     """Read a view model written by `save_view_model`."""
     with np.load(path) as data:
         arrays = {k: data[k] for k in _FIELDS}
-    return SparseViewModel(**{k: jnp.asarray(v) if k == "valid" else jnp.asarray(v, dtype) for k, v in arrays.items()})
+    return SparseViewModel(**{k: to_device(v) if k == "valid" else to_device(v, dtype) for k, v in arrays.items()})
 
 
 def load_or_build_view_model(mesh: Mesh, cache_dir=None, batch_size: int = 32, progress: bool = False,

@@ -22,6 +22,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from ..._device import to_device
 from ...geometry import Camera, KinematicModel, part_transforms, rigid_model
 from ...image import gaussian_blur, sample_bilinear
 from ...render import RenderOutput
@@ -66,7 +67,7 @@ def occlusion_params(
             raise ValueError(f"occlusion_params: {name} must lie in [{lo}, {hi}], got {value}")
     if not float(max_gain) >= 1.0:
         raise ValueError(f"occlusion_params: max_gain must be ≥ 1, got {max_gain}")
-    return OcclusionParams(*(jnp.asarray(x, dtype) for x in (threshold, rate, min_known, min_cos, max_gain)))
+    return OcclusionParams(*(to_device(x, dtype) for x in (threshold, rate, min_known, min_cos, max_gain)))
 
 
 class OcclusionConfig(eqx.Module):

@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..._device import to_device
 from ...render import Mesh
 
 
@@ -97,14 +98,15 @@ def make_texture_atlas(mesh: Mesh, texel_mm: float = 1.0, max_texels: int = 400_
     l1, l2 = l1 / s, l2 / s
     p = a[face_of] + l1[:, None] * e1[face_of] + l2[:, None] * e2[face_of]
     dtype = mesh.vertices.dtype
+
     return TextureAtlas(
-        face_offset=jnp.asarray(offset, jnp.int32),
-        face_res=jnp.asarray(res, jnp.int32),
-        face_map=jnp.asarray(face_map, dtype),
-        texel_p_model=jnp.asarray(p, dtype),
-        texel_part=jnp.asarray(np.asarray(mesh.face_part)[face_of], jnp.int32),
-        texel_live=jnp.asarray(live & ok[face_of]),
-        texel_normal=jnp.asarray(normal[face_of], dtype),
+        face_offset=to_device(offset, np.int32),
+        face_res=to_device(res, np.int32),
+        face_map=to_device(face_map, dtype),
+        texel_p_model=to_device(p, dtype),
+        texel_part=to_device(np.asarray(mesh.face_part)[face_of], np.int32),
+        texel_live=to_device(live & ok[face_of]),
+        texel_normal=to_device(normal[face_of], dtype),
     )
 
 

@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..._device import to_device
 from ..flow import roi_crop
 
 
@@ -287,4 +288,4 @@ def sift_matches(images_t, images_t1, region_t, config: SiftConfig = SiftConfig(
         share = detect_s / busy if busy > 0 else 1.0
         timings["detect_s"] = timings.get("detect_s", 0.0) + wall_s * share
         timings["match_s"] = timings.get("match_s", 0.0) + wall_s * (1.0 - share)
-    return SiftMatches(jnp.asarray(p_t, dtype), jnp.asarray(p_t1, dtype), jnp.asarray(valid))
+    return SiftMatches(to_device(p_t, dtype), to_device(p_t1, dtype), to_device(valid))  # no copy programs

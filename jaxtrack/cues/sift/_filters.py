@@ -16,6 +16,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from ..._device import to_device
 from ._detect import SiftMatches
 
 
@@ -61,7 +62,7 @@ def sift_params(
     for name, value in values.items():
         if not float(value) > 0:
             raise ValueError(f"sift_params: {name} must be > 0, got {value}")
-    return SiftParams(**{k: jnp.asarray(v, dtype) for k, v in values.items()})
+    return SiftParams(**{k: to_device(v, dtype) for k, v in values.items()})
 
 
 def _mean_length(length, valid):

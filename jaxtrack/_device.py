@@ -1,0 +1,22 @@
+"""Host values onto the device without compiling anything."""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+
+
+def to_device(x, dtype=None) -> jax.Array:
+    """`x` (numpy array, Python scalar or nested sequence) as a device array of `dtype`, cast on the host.
+
+    `jax.device_put` compiles nothing, where `jnp.asarray` / `jnp.array` of a host value compile a small copy
+    program ("stage", and a cast when the dtype changes) for each new shape and dtype in every fresh process:
+    10-30 ms each on a 2-core CPU, about 70 of them in a tracker's first frame before this helper. A Python
+    scalar without `dtype` keeps JAX's weak type, as `jnp.asarray` gives it; a JAX array (or a tracer) without
+    `dtype` (or already of it) is returned as it is; one of another dtype is cast by JAX (a tracer inside jit).
+    """
+    if isinstance(x, jax.Array):
+        return x if dtype is None or x.dtype == np.dtype(dtype) else x.astype(dtype)
+    if dtype is None and isinstance(x, (bool, int, float, complex)):
+        return jax.device_put(x)
+    return jax.device_put(np.asarray(x, dtype))
