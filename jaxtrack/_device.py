@@ -13,10 +13,15 @@ def to_device(x, dtype=None) -> jax.Array:
     program ("stage", and a cast when the dtype changes) for each new shape and dtype in every fresh process:
     10-30 ms each on a 2-core CPU, about 70 of them in a tracker's first frame before this helper. A Python
     scalar without `dtype` keeps JAX's weak type, as `jnp.asarray` gives it; a JAX array (or a tracer) without
-    `dtype` (or already of it) is returned as it is; one of another dtype is cast by JAX (a tracer inside jit).
+    `dtype` is returned as it is; with `dtype` the result is strongly typed, as `jnp.asarray(x, dtype)` gives it
+    (weakly typed arguments send `persistent_jit` to the plain path: no kept program).
     """
+    if isinstance(x, jax.core.Tracer):
+        return x if dtype is None else x.astype(dtype)
     if isinstance(x, jax.Array):
-        return x if dtype is None or x.dtype == np.dtype(dtype) else x.astype(dtype)
+        if dtype is None or (x.dtype == np.dtype(dtype) and not x.weak_type):
+            return x
+        return jax.device_put(np.asarray(x, dtype))  # a dtype asked for: strongly typed, as jnp.asarray(x, dtype)
     if dtype is None and isinstance(x, (bool, int, float, complex)):
         return jax.device_put(x)
     return jax.device_put(np.asarray(x, dtype))

@@ -364,3 +364,18 @@ def test_building_a_rig_a_mesh_and_starting_a_tracker_runs_no_eager_programs():
     assert names  # the tracker's programs are seen compiling
     eager = [n for n in names if n == "stage" or hasattr(jnp, n) or hasattr(jax.lax, n)]
     assert not eager, eager
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_default_params_are_strongly_typed_so_the_step_is_kept(dtype):
+    """`persistent_jit` sends weakly typed arguments to the plain path (a kept program takes strongly typed ones): a
+    weak leaf in the tracker's parameters would make every process trace and compile its step again."""
+    from jaxtrack._device import to_device
+    from jaxtrack.geometry import rigid_model
+    from jaxtrack.track import default_params
+
+    params = default_params(rigid_model(dtype), (48, 64), dtype)
+    weak = [path for path, x in jax.tree_util.tree_leaves_with_path(params) if getattr(x, "weak_type", False)]
+    assert not weak, weak
+    assert {x.dtype for x in jax.tree.leaves(params) if jnp.issubdtype(x.dtype, jnp.floating)} == {jnp.dtype(dtype)}
+    assert to_device(1.0).weak_type and not to_device(to_device(1.0), dtype).weak_type

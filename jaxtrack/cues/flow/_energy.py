@@ -60,7 +60,7 @@ def middlebury_params() -> FlowEnergyParams:
 
     Used by `jaxtrack flow` and `experiments/bench_flow.py`; the tracker uses the paper's values.
     """
-    return FlowEnergyParams(jnp.asarray(MIDDLEBURY_ALPHA), jnp.asarray(MIDDLEBURY_GAMMA), jnp.asarray(1e-3), True)
+    return FlowEnergyParams(to_device(MIDDLEBURY_ALPHA), to_device(MIDDLEBURY_GAMMA), to_device(1e-3), True)
 
 
 MIDDLEBURY_ALPHA = 4.0
