@@ -231,3 +231,35 @@ def test_parameter_validation():
         OcclusionConfig(window=4)
     with pytest.raises(ValueError, match="texel_mm"):
         make_texture_atlas(jt.render.box_mesh(), texel_mm=0.0)
+
+
+def test_the_atlas_keeps_only_cells_on_their_triangle_and_each_texel_centre_finds_itself():
+    """Face f keeps the R_f (R_f + 3) / 2 − 1 cells (i, j) of its R_f × R_f grid with i + j ≤ R_f, row after row;
+    `texel_index` of a texel's own centre gives that texel (centres of cells cut by the hypotenuse are clamped onto it
+    and may fall in a neighbour), and of random points on the face a cell of the same face near the point."""
+    from jaxtrack.cues.occlusion._atlas import texel_index
+
+    mesh = jt.render.box_mesh()
+    atlas = make_texture_atlas(mesh, texel_mm=3.0)
+    res = np.asarray(atlas.face_res)
+    assert res.max() >= 4  # cells beyond the triangle exist at this resolution
+    assert atlas.num_texels == int(np.sum(res * (res + 3) // 2 - 1)) < int(np.sum(res**2))
+    faces = np.repeat(np.arange(len(res)), res * (res + 3) // 2 - 1).astype(np.int32)
+    own = np.asarray(texel_index(atlas, jnp.asarray(faces), atlas.texel_p_model))
+    M = np.asarray(atlas.face_map)[faces]
+    l = np.einsum("tij,tj->ti", M[..., :3], np.asarray(atlas.texel_p_model)) + M[..., 3]
+    inside = l.sum(-1) < 1 - 1e-4  # centres not clamped onto the hypotenuse: they find their own cell
+    assert inside.mean() > 0.6
+    assert np.array_equal(own[inside], np.arange(atlas.num_texels)[inside])
+    offset = np.asarray(atlas.face_offset)
+    assert np.all((own >= offset[faces]) & (own < offset[faces] + res[faces] * (res[faces] + 3) // 2 - 1))
+    rng = np.random.default_rng(0)
+    v, f = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces)
+    face = rng.integers(0, len(f), 2000)
+    l = rng.dirichlet(np.ones(3), 2000)
+    points = np.einsum("nk,nkd->nd", l, v[f[face]])
+    idx = np.asarray(texel_index(atlas, jnp.asarray(face, jnp.int32), jnp.asarray(points, atlas.texel_p_model.dtype)))
+    assert np.all((idx >= offset[face]) & (idx < offset[face] + res[face] * (res[face] + 3) // 2 - 1))
+    edge = np.max(np.linalg.norm(v[f[face]] - np.roll(v[f[face]], 1, axis=1), axis=-1), axis=-1)
+    distance = np.linalg.norm(np.asarray(atlas.texel_p_model)[idx] - points, axis=-1)
+    assert np.all(distance <= 2.0 * edge / res[face] + 1e-6)

@@ -1,7 +1,9 @@
 """A texture atlas over a triangle mesh: the support of the appearance model f(X) (Section III-C).
 
-Every face carries a square grid of R_f × R_f texels over its barycentric coordinates (l1, l2)
-(texels with i + j > R_f lie outside the triangle and are never used). R_f follows the face's longest
+Every face carries the cells (i, j) of an R_f × R_f grid over its barycentric coordinates (l1, l2) that
+touch the triangle (i + j ≤ R_f), stored row after row: R_f (R_f + 3) / 2 − 1 texels instead of R_f² (the
+cells beyond the triangle were stored too until 2026-11-27: 38 % of the mocap human's 266 000, read in every
+camera at every frame). R_f follows the face's longest
 edge and a texel size in mm, so big faces (the 12 triangles of a box) and small ones (a teapot's
 9438) both get texels of about one pixel. The atlas is built once on the host; inside jit it is a
 constant pytree of arrays.
@@ -23,12 +25,13 @@ class TextureAtlas(eqx.Module):
 
     Attributes:
         face_offset: (F,) int32 index of face f's first texel.
-        face_res: (F,) int32 grid resolution R_f (texels along each barycentric axis).
+        face_res: (F,) int32 grid resolution R_f (cells along each barycentric axis; row i holds the cells
+            j ≤ min(R_f − 1, R_f − i), see `_row_start`).
         face_map: (F, 2, 4) affine map from a model-frame point on face f to its (l1, l2).
         texel_p_model: (T, 3) texel centre, model frame at the zero configuration (mm), clamped
             into its triangle.
         texel_part: (T,) int32 part of the texel's face.
-        texel_live: (T,) bool texel lies (at least partly) inside its triangle.
+        texel_live: (T,) bool texel of a non-degenerate face (every stored cell touches its triangle).
         texel_normal: (T, 3) unit normal of the texel's face (model frame).
     """
 
@@ -86,14 +89,16 @@ def make_texture_atlas(mesh: Mesh, texel_mm: float = 1.0, max_texels: int = 400_
     face_map = np.concatenate([lin, off[..., None]], -1)
     normal = np.cross(e1, e2)
     normal = normal / np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-30)
-    offset = np.concatenate([[0], np.cumsum(res**2)[:-1]])
-    total = int(np.sum(res**2))
+    square = np.concatenate([[0], np.cumsum(res**2)[:-1]])
     face_of = np.repeat(np.arange(len(f)), res**2)
-    local = np.arange(total) - offset[face_of]
+    local = np.arange(int(np.sum(res**2))) - square[face_of]
     r = res[face_of]
     i, j = local // r, local % r
+    touches = i + j <= r  # the cell [i, i+1] x [j, j+1] / R touches the triangle l1 + l2 ≤ 1: the only ones kept
+    face_of, r, i, j = face_of[touches], r[touches], i[touches], j[touches]
+    offset = np.concatenate([[0], np.cumsum(res * (res + 3) // 2 - 1)[:-1]])
+    assert np.array_equal(offset[face_of] + _row_start(i, r) + j, np.arange(len(face_of)))  # the layout texel_index reads
     l1, l2 = (i + 0.5) / r, (j + 0.5) / r
-    live = i + j <= r  # the cell [i, i+1] x [j, j+1] / R touches the triangle l1 + l2 ≤ 1
     s = np.maximum(l1 + l2, 1.0)  # clamp centres into the triangle
     l1, l2 = l1 / s, l2 / s
     p = a[face_of] + l1[:, None] * e1[face_of] + l2[:, None] * e2[face_of]
@@ -105,7 +110,7 @@ def make_texture_atlas(mesh: Mesh, texel_mm: float = 1.0, max_texels: int = 400_
         face_map=to_device(face_map, dtype),
         texel_p_model=to_device(p, dtype),
         texel_part=to_device(np.asarray(mesh.face_part)[face_of], np.int32),
-        texel_live=to_device(live & ok[face_of]),
+        texel_live=to_device(ok[face_of]),
         texel_normal=to_device(normal[face_of], dtype),
     )
 
@@ -120,4 +125,12 @@ def texel_index(atlas: TextureAtlas, face_id, p_model):
     l = l[..., 0] + M[..., 3]
     res = atlas.face_res[face]
     ij = jnp.clip(jnp.floor(l * res[..., None].astype(l.dtype)).astype(jnp.int32), 0, res[..., None] - 1)
-    return jnp.where(covered, atlas.face_offset[face] + ij[..., 0] * res + ij[..., 1], 0)
+    i = ij[..., 0]
+    j = jnp.minimum(ij[..., 1], res - i)  # a point on the triangle has i + j ≤ R (a cell beyond it: its row's last)
+    return jnp.where(covered, atlas.face_offset[face] + _row_start(i, res) + j, 0)
+
+
+def _row_start(i, r):
+    """Index of cell (i, 0) among a face's stored cells: row 0 holds R cells, row i ≥ 1 holds R − i + 1
+    (j ≤ R − i). Works on numpy and jax integer arrays."""
+    return i * r - (i > 0) * ((i - 1) * i // 2 - (i - 1))
