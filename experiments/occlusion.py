@@ -162,7 +162,7 @@ def report(command, args, size, diameter, runs, skipped, failed, load_start, loa
          "Precision n/a: nothing detected; recall n/a: no true occlusion in that frame."),
         ("- Without detection the tracker's own switch `TrackerConfig(occlusion=False)` is used (a separately compiled step); "
          "it has no maps." + (" Not run in --quick (it would compile a second program)." if args.quick else "")),
-        "- Picture: experiments/results/occlusion.png (errors over frames, map scores, and the frame with the most true "
+        f"- Picture: {args.plot or 'experiments/results/occlusion.png'} (errors over frames, map scores, and the frame with the most true "
         "occluded pixels: detected map next to the truth)." if not args.quick else "",
         (f"- Not run, the time budget (--budget-min {args.budget_min:g}) was spent: "
          + ", ".join(f"{c} with detection {'on' if o else 'off'}" for c, o in skipped) + ".") if skipped else "",
