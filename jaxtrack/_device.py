@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 
@@ -24,4 +25,6 @@ def to_device(x, dtype=None) -> jax.Array:
         return jax.device_put(np.asarray(x, dtype))  # a dtype asked for: strongly typed, as jnp.asarray(x, dtype)
     if dtype is None and isinstance(x, (bool, int, float, complex)):
         return jax.device_put(x)
+    if isinstance(x, (list, tuple)) and any(isinstance(v, jax.Array) for v in jax.tree.leaves(x)):
+        return jnp.asarray(x, dtype)  # a sequence of device arrays or tracers: stacked by JAX
     return jax.device_put(np.asarray(x, dtype))

@@ -137,10 +137,10 @@ def chain_model(
         mask[p] = mask[parents[p]]
         mask[p, p - 1] = True
     return KinematicModel(
-        joint_twists=jnp.asarray(twists, dtype),
-        part_joints=jnp.asarray(mask),
-        joint_parent_part=jnp.asarray(parents[1:], jnp.int32),
-        joint_child_part=jnp.arange(1, num_parts, dtype=jnp.int32),
+        joint_twists=to_device(twists, dtype),  # host arrays: no eager XLA program per field
+        part_joints=to_device(mask),
+        joint_parent_part=to_device(np.asarray(parents[1:]), np.int32),
+        joint_child_part=to_device(np.arange(1, num_parts), np.int32),
     )
 
 

@@ -9,7 +9,8 @@ from jax.typing import ArrayLike
 
 
 def _array_module(*arrays):
-    """numpy for host values (no eager XLA program per operation, float64), jax.numpy when any is a JAX array."""
+    """numpy for host values (no eager XLA program per operation; in the inputs' own precision, float64 for Python
+    floats and float64 arrays where JAX without x64 measured in float32), jax.numpy when any is a JAX array."""
     return jnp if any(isinstance(a, jax.Array) for a in arrays) else np
 
 

@@ -59,7 +59,9 @@ def make_texture_atlas(mesh: Mesh, texel_mm: float = 1.0, max_texels: int = 400_
         mesh: the tracked mesh (model frame, mm).
         texel_mm: texel edge length; about the pixel footprint of the surface at the working distance
             (e.g. 1 mm for a 16 cm object seen at 60 cm with f = 700 px).
-        max_texels: capacity bound; the texel size grows until Σ R_f² fits.
+        max_texels: capacity bound; the texel size grows until Σ R_f² (the full grids) fits, so the atlas, which
+            stores R_f (R_f + 3) / 2 − 1 cells per face, holds fewer texels (the resolutions as before the
+            compact layout).
         max_res: largest R_f.
 
     Raises:
@@ -117,7 +119,9 @@ def make_texture_atlas(mesh: Mesh, texel_mm: float = 1.0, max_texels: int = 400_
 
 def texel_index(atlas: TextureAtlas, face_id, p_model):
     """Texel under surface points: face ids (...,) (−1 = none) and model points (..., 3) → (...,) int32
-    texel index (0 where face_id < 0; mask with face_id ≥ 0). Jittable."""
+    texel index (0 where face_id < 0; mask with face_id ≥ 0). Jittable. A point on its triangle falls in a stored
+    cell (i + j ≤ R); one at least a cell beyond the hypotenuse gets its row's last stored cell (with the full grid
+    it fell on a never-observed cell, "unknown")."""
     covered = face_id >= 0
     face = jnp.where(covered, face_id, 0)
     M = atlas.face_map[face]  # (..., 2, 4)
