@@ -510,9 +510,9 @@ class Tracker:
         # Frames t live in the state as they came: 8-bit frames stay uint8 (a quarter of the bytes to copy and
         # move), others in the tracker's dtype. Later frames are cast to the same dtype: one program.
         self.frame_dtype = np.uint8 if frames.dtype == np.uint8 else np.dtype(self.dtype)
+        occluder_depth = None if occluder_depth is None else to_device(occluder_depth, self.dtype)
         states = _initial_modality_states(setup, to_device(frames, self.dtype), to_device(offsets), T, theta,
-                                          self.params_for(crop_shape), crop_shape, _as_array(scales),
-                                          None if occluder_depth is None else jnp.asarray(occluder_depth, self.dtype))
+                                          self.params_for(crop_shape), crop_shape, _as_array(scales), occluder_depth)
         self.keyframes = None
         if self.recovery_modality() is not None and self.config.recovery.keyframes is not None:
             self.keyframes = KeyframeModel(np.asarray(self.mesh.vertices), np.asarray(self.mesh.faces),
@@ -521,7 +521,7 @@ class Tracker:
         return TrackerState(
             T_world_root=T, theta=theta, images=to_device(self._frames_as_state(frames)),
             data_weight=to_device(np.ones((self.num_cameras, H, W), self.dtype)), visible=sil, appearance=appearance,
-            modalities=states, occluder_depth=None if occluder_depth is None else jnp.asarray(occluder_depth, self.dtype),
+            modalities=states, occluder_depth=occluder_depth,
         )
 
     def _initial_appearance(self, frames, T, theta, offsets=None, crop_shape=None, scales=None):
