@@ -230,3 +230,63 @@ def test_pose_prior_vmaps_over_strengths():
     for k, s in enumerate(np.asarray(strengths)):
         one = solve_pose(model, corr, T0, pose_prior=PosePrior(T0, s, s)).T_world_root
         np.testing.assert_allclose(np.asarray(batched[k]), np.asarray(one), atol=1e-8)
+
+
+# --- the Cauchy loss on the motion rows (TrackerParams.motion_robust_px) ------------------------------------
+def test_cauchy_weights_halve_at_the_scale_fall_with_the_error_and_are_off_at_zero():
+    from jaxtrack.modality import cauchy_weights
+
+    e = jnp.asarray([0.0, 1.0, 2.0, 4.0, 40.0])
+    w = np.asarray(cauchy_weights(e, jnp.asarray(2.0)))
+    np.testing.assert_allclose(w, 1.0 / (1.0 + (np.asarray(e) / 2.0) ** 2))
+    assert w[0] == 1.0 and w[2] == pytest.approx(0.5) and np.all(np.diff(w) < 0)
+    np.testing.assert_array_equal(np.asarray(cauchy_weights(e, jnp.asarray(0.0))), np.ones(5))
+    np.testing.assert_array_equal(np.asarray(cauchy_weights(e, jnp.asarray(-1.0))), np.ones(5))
+
+
+def test_reprojection_px_is_zero_at_the_pose_the_pixels_were_made_with():
+    from jaxtrack.modality import reprojection_px
+
+    scene, corr = _scene_rows(noise_px=0.0)
+    err = reprojection_px(_ctx(scene), corr, Pose(jnp.asarray(scene.T_world_root), jnp.zeros((0,))))
+    live = np.asarray(corr.weight) > 0
+    assert np.abs(np.asarray(err)[live]).max() < 1e-6
+
+
+def test_the_robust_prediction_is_not_pulled_by_rows_of_a_second_motion():
+    """30 % of the motion rows follow another motion (an occluder's flow, 12 px away): the plain prediction
+    (eq. 5) is biased toward them; the second, Cauchy-weighted pass lands near the object's true pose."""
+    import types
+
+    from jaxtrack.track._step import _robust_prediction
+
+    scene, corr = _scene_rows(seed=3, noise_px=0.3)
+    live = np.flatnonzero(np.asarray(corr.weight) > 0)
+    pixel = np.asarray(corr.pixel).copy()
+    pixel[live[: int(0.3 * len(live))]] += np.array([12.0, -5.0])
+    moved = make_correspondences(scene.cameras, pixel[: len(scene.pixel)], scene.p_model,
+                                 camera_index=scene.camera_index, capacity=corr.capacity)
+    model = jt.rigid_model(jnp.float64)
+    T0 = jnp.asarray(perturb_pose(np.random.default_rng(6), scene.T_world_root, 0.05, 5.0))
+    ctx = _ctx(scene)
+
+    @jax.jit
+    def predict(scale):
+        params = types.SimpleNamespace(motion_robust_px=scale, depth_invariant=jnp.zeros((), jnp.float64))
+        return _robust_prediction(ctx, model, moved, T0, jnp.zeros((0,)), params, scene.cameras.center_world, 20)
+
+    def error_px(out):  # mean reprojection error of the unmoved rows' true pixels at the predicted pose
+        from jaxtrack.modality import reprojection_px
+
+        e = np.asarray(reprojection_px(ctx, corr, Pose(out.T_world_root, jnp.zeros((0,)))))
+        return float(e[live[int(0.3 * len(live)):]].mean())
+
+    plain, robust = predict(jnp.asarray(-1.0)), predict(jnp.asarray(1.0))
+    assert int(plain.passes) == 1 and int(robust.passes) == 2
+    plain_err, robust_err = error_px(plain), error_px(robust)
+    assert plain_err > 2.0, plain_err  # the outliers do bias eq. 5
+    assert robust_err < 0.35 * plain_err, (plain_err, robust_err)
+    # off, it is the plain solve
+    one = solve_pose(model, moved, T0, config=jt.SolverConfig(max_steps=20), ray_origins=scene.cameras.center_world,
+                     depth_invariance=0.0)
+    np.testing.assert_allclose(np.asarray(plain.T_world_root), np.asarray(one.T_world_root), atol=1e-9)

@@ -83,6 +83,31 @@ def max_pixel_motion(ctx: FrameContext, before: Pose, after: Pose) -> jax.Array:
     return jnp.max(jnp.linalg.norm(px_a - px_b, axis=-1))
 
 
+def reprojection_px(ctx: FrameContext, corr: Correspondences, pose: Pose) -> jax.Array:
+    """(N,) distance (px of the crops) between each row's pixel and its model point projected at `pose` (ideal
+    pinhole, as the rows' pixels are stored)."""
+    A = part_transforms(ctx.model, pose.T_world_root, pose.theta)[corr.part]
+    p_world = jnp.einsum("nij,nj->ni", A[:, :3, :3], corr.p_model) + A[:, :3, 3]
+
+    def ideal(cam):
+        p = jnp.einsum("ij,nj->ni", cam.T_cam_world[:3, :3], p_world) + cam.T_cam_world[:3, 3]
+        z = jnp.where(p[:, 2] > 1e-6, p[:, 2], 1e-6)
+        K = cam.K
+        x, y = p[:, 0] / z, p[:, 1] / z
+        return jnp.stack([K[0, 0] * x + K[0, 1] * y + K[0, 2], K[1, 1] * y + K[1, 2]], -1)
+
+    px = jax.vmap(ideal)(ctx.crop_cameras)  # (C, N, 2)
+    index = jnp.clip(corr.camera, 0, px.shape[0] - 1)
+    px = jnp.take_along_axis(px, index[None, :, None], axis=0)[0]
+    return jnp.linalg.norm(px - corr.pixel, axis=-1)
+
+
+def cauchy_weights(error, scale) -> jax.Array:
+    """IRLS weights of the Cauchy loss, 1 / (1 + (e / s)²); all ones where `scale` ≤ 0 (off)."""
+    s = jnp.where(scale > 0, scale, 1.0)
+    return jnp.where(scale > 0, 1.0 / (1.0 + (error / s) ** 2), 1.0).astype(error.dtype)
+
+
 def mean_motion(model, corr: Correspondences, before: Pose, after: Pose) -> jax.Array:
     """Mean distance (mm) the weighted rows' model points move from `before` to `after` (∞ without rows)."""
     def world(p: Pose):
@@ -110,6 +135,9 @@ class RefineSettings(eqx.Module):
             iteration); 0: toward the anchor (the prediction) for the whole frame.
         depth_invariance: p of each round's solve (`solve_pose(ray_origins=ctx.cameras' centres)`): residuals
             × (Z₀ / Z)^p; 0: eq. 4 as it is.
+        motion_robust_px: scale s (px of the crops) of a Cauchy loss on the motion modalities' rows: each round
+            weighs a row by 1 / (1 + (e / s)²), e its reprojection error at the round's pose (IRLS), so that rows
+            the pose does not explain (an occluder's flow) lose their pull; ≤ 0: off (eq. 5 as it is).
     """
 
     settle_motion: jax.Array
@@ -121,6 +149,7 @@ class RefineSettings(eqx.Module):
     pose_prior_translation_abs: jax.Array = eqx.field(default_factory=lambda: jnp.zeros(()))
     prior_follows_round: jax.Array = eqx.field(default_factory=lambda: jnp.zeros(()))
     depth_invariance: jax.Array = eqx.field(default_factory=lambda: jnp.zeros(()))
+    motion_robust_px: jax.Array = eqx.field(default_factory=lambda: -jnp.ones(()))
 
 
 class RoundState(eqx.Module):
@@ -168,6 +197,8 @@ def _round(modalities, ctx, contexts, states, frames, params, settings: RefineSe
     sets, carries = [], []
     for m, mctx, s, f, c in zip(modalities, contexts, states, frames, state.carries):
         rows, c = m.rows(mctx, s, f, c, pose, ren, state.round_index, params)
+        if m.motion:
+            rows = rows.with_weight(rows.weight * cauchy_weights(reprojection_px(ctx, rows, pose), settings.motion_robust_px))
         sets.append(rows)
         carries.append(c)
     fused = fuse_rows(modalities, sets, params)

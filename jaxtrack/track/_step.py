@@ -54,11 +54,13 @@ from ..modality import (
     Modality,
     Pose,
     RefineSettings,
+    cauchy_weights,
     fuse_rows,
     modality_class,
     modality_names,
     refine_rounds,
     render_crops,
+    reprojection_px,
 )
 from ..render import Mesh, RasterPlan
 from ..solve import Correspondences, CueWeights, SolverConfig, concatenate_correspondences, solve_pose
@@ -74,7 +76,7 @@ REGION_MODALITIES = ("levelset", "lines")
 # into p(frame beyond 5 cm / 5°): [intercept, one per feature], fitted by experiments/loss_detection.py on its
 # calibration sequences (other seeds, objects and motions than the sequences it is evaluated on).
 LOSS_EVIDENCE = ("contour", "motion", "occluded", "appearance", "jump_pred")
-LOSS_WEIGHTS = (-2.995, 2.561, 3.858, 22.900, 11.744, 2.026)
+LOSS_WEIGHTS = (-3.432, 20.073, 1.809, 12.357, -5.943, 0.294)
 
 # The flow pyramid's coarsest level at the working resolution (px, short side). With the default 16 a 96 px crop
 # had 3 levels, one fewer than the native crops it replaced, and the prediction did not reach a 20 px / 12° frame
@@ -286,6 +288,8 @@ class TrackerParams(eqx.Module):
             `depth_invariance`, with the cameras' centres): each row's residual × (Z₀ / Z)^p, so that rows that
             disagree are not fitted by sliding the object toward the camera; 0: eq. 4 as it is (the tracker's
             default for chains; 1 for rigid objects).
+        motion_robust_px: scale (px of the crops) of the Cauchy loss on the flow and SIFT rows in the refinement
+            rounds (`jaxtrack.modality.RefineSettings.motion_robust_px`); ≤ 0: off.
     """
 
     weights: CueWeights
@@ -314,6 +318,7 @@ class TrackerParams(eqx.Module):
     depth_invariant: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(0.0))
     uncertain_confidence: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(0.5))
     lost_confidence: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(0.25))
+    motion_robust_px: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(-1.0))
 
 
 class TrackerSetup(eqx.Module):
@@ -418,6 +423,41 @@ class FrameResult(eqx.Module):
 def _counts(corr: Correspondences, num_cameras: int, cue) -> jax.Array:
     live = (corr.weight > 0) & (corr.cue == cue)
     return jnp.sum(live[None, :] & (corr.camera[None, :] == jnp.arange(num_cameras)[:, None]), axis=1)
+
+
+class _PredictionPass(eqx.Module):
+    """The carry of the prediction's IRLS passes: the latest solution and the passes run."""
+
+    T_world_root: jax.Array
+    theta: jax.Array
+    status: jax.Array
+    passes: jax.Array
+
+
+def _robust_prediction(ctx, model, fused: Correspondences, T_t, theta_t, params, ray_origins, steps: int):
+    """The prediction solve (eq. 5 on the motion rows from the pose at t); with `params.motion_robust_px` > 0 a second
+    pass from its result with the rows weighed by the Cauchy loss of their reprojection error there (IRLS), so that
+    rows of an occluder that moved another way do not bias it. One traced solve (a `while_loop` over passes).
+
+    Returns:
+        `_PredictionPass` (pose, status of the last usable pass; a second pass that fails keeps the first)."""
+
+    def solve(T, theta, corr):
+        return solve_pose(model, corr, T, theta, SolverConfig(max_steps=steps), ray_origins=ray_origins,
+                          depth_invariance=params.depth_invariant)
+
+    def body(carry: _PredictionPass) -> _PredictionPass:
+        first = carry.passes == 0
+        scale = jnp.where(first, -1.0, params.motion_robust_px)
+        err = reprojection_px(ctx, fused, Pose(carry.T_world_root, carry.theta))
+        sol = solve(carry.T_world_root, carry.theta, fused.with_weight(fused.weight * cauchy_weights(err, scale)))
+        keep = first | is_usable(sol.status)
+        return _PredictionPass(jnp.where(keep, sol.T_world_root, carry.T_world_root), jnp.where(keep, sol.theta, carry.theta),
+                               jnp.where(keep, sol.status, carry.status).astype(jnp.int32), carry.passes + 1)
+
+    passes = jnp.where(params.motion_robust_px > 0, 2, 1)
+    start = _PredictionPass(T_t, theta_t.astype(T_t.dtype), jnp.asarray(Status.OK, jnp.int32), jnp.zeros((), jnp.int32))
+    return jax.lax.while_loop(lambda c: c.passes < passes, body, start)
 
 
 def _motion_inliers(corr: Correspondences, cameras: Camera, model: KinematicModel, T, theta, inlier_px):
@@ -586,8 +626,8 @@ def track_step(
     if motion_idx:
         motion = [modalities[i] for i in motion_idx]
         fused = fuse_rows(motion, [data[i] for i in motion_idx], params, prediction=True)
-        pred = solve_pose(model, fused, T_t, theta_t, SolverConfig(max_steps=config.prediction_steps),
-                          ray_origins=setup.cameras.center_world, depth_invariance=params.depth_invariant)
+        pred = _robust_prediction(ctx, model, fused, T_t, theta_t, params, setup.cameras.center_world,
+                                  config.prediction_steps)
         use = is_usable(pred.status)
         predicted = use
         T_pred = jnp.where(use, pred.T_world_root, T_t)
@@ -604,7 +644,7 @@ def track_step(
         settings = RefineSettings(params.region.settle_motion, params.region.joint_prior,
                                   params.pose_prior_rotation, params.pose_prior_translation, params.render_reuse_px,
                                   params.pose_prior_rotation_abs, params.pose_prior_translation_abs,
-                                  params.prior_follows_round, params.depth_invariant)
+                                  params.prior_follows_round, params.depth_invariant, params.motion_robust_px)
         res = refine_rounds(modalities, ctx, state.modalities, data, Pose(T_pred, theta_pred.astype(dtype)), params, settings,
                             rounds, steps, min_rounds=min_rounds, contexts=contexts)
         T_new, theta_new = res.pose.T_world_root, jnp.clip(res.pose.theta, params.theta_lower, params.theta_upper)
