@@ -484,9 +484,11 @@ def test_hypothesis_scores_under_vmap_equal_one_at_a_time(sequence, lines_sift):
 
 @pytest.mark.xdist_group("lines_sift")
 def test_an_injected_jump_is_lost_then_recovered(lines_sift):
-    """Issue 24: the pose teleported 40° is LOST in its frame; the search (the first frame's SIFT keyframe, PnP) finds
+    """Issue 24: the pose teleported 60° is LOST in its frame; the search (the first frame's SIFT keyframe, PnP) finds
     the pose, and the frame of the jump is RECOVERED within 5°; the next frame tracks on from it (OK). The box is
-    nearer than in `sequence` (400 mm): at 600 mm its 22 keypoints left 6 matches, too few for PnP (12 inliers)."""
+    nearer than in `sequence` (400 mm): at 600 mm its 22 keypoints left 6 matches, too few for PnP (12 inliers).
+    Teleported 40° (as up to a2beddf), the step now pulls most of the jump back by itself (the Cauchy loss on the
+    motion rows): 10.3° left, UNCERTAIN at confidence 0.31, no search, then OK at 6.1°."""
     from jaxtrack.synth import SynthConfig, render_sequence
 
     tracker, _, _ = lines_sift
@@ -499,7 +501,7 @@ def test_an_injected_jump_is_lost_then_recovered(lines_sift):
         state = tracker.start(images[0], truth[0])
         state, result, _ = tracker.step(state, images[1])
         assert int(result.status) == jt.Status.OK
-        state = _turned(state, 40.0)
+        state = _turned(state, 60.0)
         statuses, errors, searched = [], [], []
         for k in (2, 3):
             state, result, info = tracker.step(state, images[k])
