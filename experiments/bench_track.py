@@ -94,7 +94,7 @@ def stage_breakdown(tracker, state, frames_np, repeats: int) -> dict:
     from jaxtrack.cues.occlusion import detect_occlusion, observe_texels, update_appearance
     from jaxtrack.modality import Pose, fuse_rows, render_crops
     from jaxtrack.solve import JointPrior, PosePrior, SolverConfig, solve_pose
-    from jaxtrack.track._step import frame_context, modality_context
+    from jaxtrack.track._step import _robust_prediction, frame_context, modality_context
 
     config, model, dtype = tracker.config, tracker.model, tracker.dtype
     frames = tracker.check_frames(frames_np)
@@ -160,8 +160,9 @@ def stage_breakdown(tracker, state, frames_np, repeats: int) -> dict:
     motion = [i for i, m in enumerate(modalities) if m.motion]
     T_t, theta_t = state.T_world_root, state.theta
     if motion:
-        pred = eqx.filter_jit(lambda d: solve_pose(model, fuse_rows([modalities[i] for i in motion], d, params, prediction=True),
-                                                   T_t, theta_t, SolverConfig(max_steps=config.prediction_steps)).T_world_root)
+        pred = eqx.filter_jit(lambda d: _robust_prediction(  # the step's prediction: with its Cauchy-weighted second pass
+            ctx, model, fuse_rows([modalities[i] for i in motion], d, params, prediction=True), T_t, theta_t, params,
+            ctx.cameras.center_world, config.prediction_steps).T_world_root)
         out["ms"]["prediction solve"] = _median_ms(lambda: pred([data[i] for i in motion]), repeats)
         out["calls"]["prediction solve"] = 1
     if refined:

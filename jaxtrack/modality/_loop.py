@@ -5,6 +5,9 @@ modalities, n_OF from the prediction's reference modality) and concatenates them
 runs rounds of {one render per camera at the current pose (when a modality asks), rows of every
 modality, one Gauss-Newton solve with the joint and pose priors} until the pose settles, as a
 `lax.while_loop` with a named state (`RoundState`). Both are jittable and vmappable over parameters.
+With `RefineSettings.motion_robust_px` > 0 each round weighs the motion modalities' rows by a Cauchy loss of
+their reprojection error at the round's pose (`cauchy_weights`, `reprojection_px`; IRLS from the raw rows, so the
+weights do not compound over rounds).
 """
 
 from __future__ import annotations

@@ -9,9 +9,12 @@ one). For frames t → t+1 of C cameras sharing one state χ = (ξ, Θ):
    needs nothing from the host is also a function of its own, `start_frame`: the tracker runs it while the
    host detects SIFT keypoints and hands its output to `track_step(early=)`;
 2. prediction: one Gauss-Newton solve on the motion modalities' rows with the prediction weights of
-   Section V (n_C → n_OF); the modalities check their rows against it (SIFT back-projection);
+   Section V (n_C → n_OF), and with `TrackerParams.motion_robust_px` > 0 a second pass from it with the rows
+   weighed by a Cauchy loss of their reprojection error (`_robust_prediction`); the modalities check their rows
+   against it (SIFT back-projection);
 3. refinement (`refine_rounds`): rounds of {one render per camera at the current pose, the rows of every
-   modality, one fused solve with the joint and pose priors} until the pose settles;
+   modality (the motion rows Cauchy-weighted at the round's pose), one fused solve with the joint and pose
+   priors} until the pose settles;
 4. update: every modality's state (densities), the occlusion map of frame t+1 at the final pose (the
    next step's r(x) and the SIFT mask) and the appearance model where not occluded (eq. 10).
 
@@ -288,8 +291,9 @@ class TrackerParams(eqx.Module):
             `depth_invariance`, with the cameras' centres): each row's residual × (Z₀ / Z)^p, so that rows that
             disagree are not fitted by sliding the object toward the camera; 0: eq. 4 as it is (the tracker's
             default for chains; 1 for rigid objects).
-        motion_robust_px: scale (px of the crops) of the Cauchy loss on the flow and SIFT rows in the refinement
-            rounds (`jaxtrack.modality.RefineSettings.motion_robust_px`); ≤ 0: off.
+        motion_robust_px: scale (px of the crops) of the Cauchy loss on the flow and SIFT rows: the prediction's
+            second pass (`_robust_prediction`) and every refinement round (`jaxtrack.modality.RefineSettings
+            .motion_robust_px`); ≤ 0: off (eq. 5 as it is; the default for chains, 2 for rigid objects).
     """
 
     weights: CueWeights
@@ -437,10 +441,18 @@ class _PredictionPass(eqx.Module):
 def _robust_prediction(ctx, model, fused: Correspondences, T_t, theta_t, params, ray_origins, steps: int):
     """The prediction solve (eq. 5 on the motion rows from the pose at t); with `params.motion_robust_px` > 0 a second
     pass from its result with the rows weighed by the Cauchy loss of their reprojection error there (IRLS), so that
-    rows of an occluder that moved another way do not bias it. One traced solve (a `while_loop` over passes).
+    rows of an occluder that moved another way do not bias it. One traced solve (a `while_loop` over passes; under
+    vmap over parameters every member runs the passes of the largest).
+
+    Args:
+        ctx: the step's context (its crop cameras and model; `fused` pixels are crop pixels); fused: (N rows) the
+        motion rows with the prediction weights; T_t (4, 4), theta_t (J,): the pose at t; steps: Gauss-Newton steps
+        per pass (static).
 
     Returns:
-        `_PredictionPass` (pose, status of the last usable pass; a second pass that fails keeps the first)."""
+        `_PredictionPass`: the pose and status of the last usable pass (a second pass that fails keeps the first's;
+        after an unusable first pass, whose pose is the pose at t, the second still runs from there and is kept when
+        usable), and the passes run."""
 
     def solve(T, theta, corr):
         return solve_pose(model, corr, T, theta, SolverConfig(max_steps=steps), ray_origins=ray_origins,
@@ -452,7 +464,9 @@ def _robust_prediction(ctx, model, fused: Correspondences, T_t, theta_t, params,
         err = reprojection_px(ctx, fused, Pose(carry.T_world_root, carry.theta))
         sol = solve(carry.T_world_root, carry.theta, fused.with_weight(fused.weight * cauchy_weights(err, scale)))
         keep = first | is_usable(sol.status)
-        return _PredictionPass(jnp.where(keep, sol.T_world_root, carry.T_world_root), jnp.where(keep, sol.theta, carry.theta),
+        dtype = carry.T_world_root.dtype  # the carry keeps its dtype whatever the rows' (a while_loop requires it)
+        return _PredictionPass(jnp.where(keep, sol.T_world_root, carry.T_world_root).astype(dtype),
+                               jnp.where(keep, sol.theta, carry.theta).astype(dtype),
                                jnp.where(keep, sol.status, carry.status).astype(jnp.int32), carry.passes + 1)
 
     passes = jnp.where(params.motion_robust_px > 0, 2, 1)
