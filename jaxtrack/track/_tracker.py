@@ -96,9 +96,9 @@ DEPTH_INVARIANT = 1.0
 # Scale (px of the crops) of the Cauchy loss on the motion rows, in the prediction's second pass and in every refinement
 # round (`TrackerParams.motion_robust_px`; ≤ 0: off): rows the pose does not explain, an occluder's flow, lose their pull
 # (README "Motion rows the pose does not explain"). 1, 1.5 and 2 measured on every experiment: 1 and 1.5 did more for the
-# synthetic occlusions and the teapot but cost the real dragon 7 and 3 points and the truck 1.3° / 0°; 2 keeps the
-# dragon. Rigid objects only: on the human (12 frames, 120 fps) knees + elbows 1.35 / 1.36° → 1.26 / 1.28°, but the
-# run's right foot failed at frame 3; chains keep eq. 5 as it is.
+# synthetic occlusions and the teapot but cost the real dragon 10 and 6 points (47 % within 5 cm / 5° before) and, at 1,
+# the truck 1.0°; 2 costs the dragon 2 points. Rigid objects only: on the human (12 frames, 120 fps) knees + elbows
+# 1.35 / 1.36° → 1.26 / 1.28°, but the run's right foot failed at frame 3; chains keep eq. 5 as it is.
 MOTION_ROBUST_PX = 2.0
 
 
