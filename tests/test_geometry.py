@@ -10,11 +10,13 @@ from jaxtrack.geometry import (
     backproject_pixels,
     chain_model,
     make_camera,
+    part_points_world,
     part_transforms,
     pixel_rays_world,
     plucker_from_ray,
     point_line_distance,
     point_line_residual,
+    project_ideal,
     project_points,
     rigid_model,
     se3_exp,
@@ -133,6 +135,33 @@ def test_camera_rig_batches_and_rejects_bad_input():
     with pytest.raises(ValueError, match="cameras\\[0\\] must be a single Camera"):
         stack_cameras([cams])
 
+
+
+def test_project_ideal_picks_each_points_camera_and_is_the_undistorted_projection():
+    """Per-row camera selection equals projecting every point in every camera and picking; with no distortion it
+    is `project_points`; a rig without camera indices is refused. `part_points_world` is eq. 2 applied per row."""
+    rng = np.random.default_rng(0)
+    R = cv2.Rodrigues(np.array([0.1, -0.2, 0.05]))[0]
+    cams = stack_cameras([make_camera(K, 640, 480, dtype=jnp.float64),
+                          make_camera(K * np.array([[1.1], [0.9], [1.0]]), 640, 480, R, [30.0, -20.0, 50.0], dtype=jnp.float64)])
+    p = jnp.asarray(rng.uniform([-100, -100, 600], [100, 100, 900], (40, 3)))
+    index = jnp.asarray(rng.integers(0, 2, 40), jnp.int32)
+    px, z = project_ideal(cams, p, index)
+    for c in range(2):
+        ref, zc = project_points(select_camera(cams, c), p)
+        pick = np.asarray(index) == c
+        np.testing.assert_allclose(np.asarray(px)[pick], np.asarray(ref)[pick], atol=1e-9)
+        np.testing.assert_allclose(np.asarray(z)[pick], np.asarray(zc)[pick], atol=1e-9)
+    one, _ = project_ideal(select_camera(cams, 1), p)
+    np.testing.assert_allclose(np.asarray(one), np.asarray(project_points(select_camera(cams, 1), p)[0]), atol=1e-9)
+    with pytest.raises(ValueError, match="camera_index"):
+        project_ideal(cams, p)
+    model = chain_model([-1, 0], [(0, 0, 1)], [(50.0, 0, 0)], dtype=jnp.float64)
+    T_root, theta = se3_exp(jnp.array([10.0, -5, 900, 0.1, 0.2, -0.3])), jnp.array([0.4])
+    part = jnp.asarray(rng.integers(0, 2, 40), jnp.int32)
+    T = np.asarray(part_transforms(model, T_root, theta))[np.asarray(part)]
+    expected = np.einsum("nij,nj->ni", T[:, :3, :3], np.asarray(p)) + T[:, :3, 3]
+    np.testing.assert_allclose(np.asarray(part_points_world(model, T_root, theta, p, part)), expected, atol=1e-9)
 
 @pytest.mark.parametrize(
     "kwargs, message",

@@ -6,12 +6,14 @@ from ._camera import crop_camera as crop_camera
 from ._camera import make_camera as make_camera
 from ._camera import pixel_rays_world as pixel_rays_world
 from ._camera import pixels_to_normalized as pixels_to_normalized
+from ._camera import project_ideal as project_ideal
 from ._camera import project_points as project_points
 from ._camera import select_camera as select_camera
 from ._camera import stack_cameras as stack_cameras
 from ._camera import undistort_points as undistort_points
 from ._chain import KinematicModel as KinematicModel
 from ._chain import chain_model as chain_model
+from ._chain import part_points_world as part_points_world
 from ._chain import part_transforms as part_transforms
 from ._chain import prismatic_twist as prismatic_twist
 from ._chain import revolute_twist as revolute_twist

@@ -110,6 +110,34 @@ def select_camera(cameras: Camera, index: ArrayLike) -> Camera:
     return jax.tree_util.tree_map(lambda x: x[index], cameras)
 
 
+def project_ideal(cameras: Camera, p_world: ArrayLike, camera_index: ArrayLike | None = None):
+    """Ideal (undistorted) pinhole pixels and depth of world points, each point in its own camera. Jittable.
+
+    The pixels of 2D-3D rows are stored undistorted (`Correspondences.pixel`), so their reprojection errors
+    compare against this projection, not `project_points` (which distorts).
+
+    Args:
+        cameras: a stacked rig (C cameras; `camera_index` picks each point's) or one unbatched camera.
+        p_world: (N, 3) world points.
+        camera_index: (N,) int camera of each point (rig only; None with one camera).
+
+    Returns:
+        (px (N, 2) pixels, z (N,) camera-frame depth); points behind a camera get a finite, meaningless
+        pixel (z clamped to 1e-6 in the division), mask them by z.
+    """
+    if cameras.K.ndim == 3 and camera_index is None:
+        raise ValueError("project_ideal: a stacked rig needs camera_index (the camera of each point)")
+    cam = select_camera(cameras, camera_index) if cameras.K.ndim == 3 else cameras
+    p_world = jnp.asarray(p_world)
+    T = cam.T_cam_world
+    x, y, z = (T[..., i, 0] * p_world[:, 0] + T[..., i, 1] * p_world[:, 1] + T[..., i, 2] * p_world[:, 2] + T[..., i, 3]
+               for i in range(3))
+    safe_z = jnp.where(z > 1e-6, z, 1e-6)
+    xn, yn = x / safe_z, y / safe_z
+    K = cam.K
+    return jnp.stack([K[..., 0, 0] * xn + K[..., 0, 1] * yn + K[..., 0, 2], K[..., 1, 1] * yn + K[..., 1, 2]], -1), z
+
+
 def _distortion_terms(xy, dist):
     """OpenCV's radial-tangential model at normalised coordinates xy (..., 2): the radial factor
     (..., 1) and the tangential shift (..., 2), so that distorted = xy · radial + shift.

@@ -168,3 +168,11 @@ def part_transforms(model: KinematicModel, T_world_root: jax.Array, theta: jax.A
 
     chain, _ = jax.lax.scan(multiply_joint, eye, (joint_exps, model.part_joints.T))
     return T_world_root @ chain
+
+
+def part_points_world(model: KinematicModel, T_world_root: jax.Array, theta: jax.Array, p_model: jax.Array, part: jax.Array):
+    """World coordinates (N, 3) of model points (N, 3) of parts (N,) int at the pose (T_world_root, θ) (eq. 2).
+    Jittable."""
+    T = part_transforms(model, T_world_root, theta)[part]  # (N, 4, 4)
+    return jnp.stack([T[:, i, 0] * p_model[:, 0] + T[:, i, 1] * p_model[:, 1] + T[:, i, 2] * p_model[:, 2] + T[:, i, 3]
+                      for i in range(3)], -1)

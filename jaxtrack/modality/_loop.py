@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._status import Status, first_failure, status_where
-from ..geometry import part_transforms, project_points
+from ..geometry import part_points_world, part_transforms, project_ideal, project_points
 from ..render import RenderOutput, render
 from ..solve import Correspondences, JointPrior, PosePrior, SolverConfig, concatenate_correspondences, solve_pose
 from ._protocol import FrameContext, FusionCounts, Modality, Pose
@@ -87,21 +87,11 @@ def max_pixel_motion(ctx: FrameContext, before: Pose, after: Pose) -> jax.Array:
 
 
 def reprojection_px(ctx: FrameContext, corr: Correspondences, pose: Pose) -> jax.Array:
-    """(N,) distance (px of the crops) between each row's pixel and its model point projected at `pose` (ideal
-    pinhole, as the rows' pixels are stored)."""
-    A = part_transforms(ctx.model, pose.T_world_root, pose.theta)[corr.part]
-    p_world = jnp.einsum("nij,nj->ni", A[:, :3, :3], corr.p_model) + A[:, :3, 3]
-
-    def ideal(cam):
-        p = jnp.einsum("ij,nj->ni", cam.T_cam_world[:3, :3], p_world) + cam.T_cam_world[:3, 3]
-        z = jnp.where(p[:, 2] > 1e-6, p[:, 2], 1e-6)
-        K = cam.K
-        x, y = p[:, 0] / z, p[:, 1] / z
-        return jnp.stack([K[0, 0] * x + K[0, 1] * y + K[0, 2], K[1, 1] * y + K[1, 2]], -1)
-
-    px = jax.vmap(ideal)(ctx.crop_cameras)  # (C, N, 2)
-    index = jnp.clip(corr.camera, 0, px.shape[0] - 1)
-    px = jnp.take_along_axis(px, index[None, :, None], axis=0)[0]
+    """(N,) distance (px of the crops) between each row's pixel and its model point projected at `pose` into the
+    row's crop camera (ideal pinhole, as the rows' pixels are stored; `jaxtrack.geometry.project_ideal`)."""
+    p_world = part_points_world(ctx.model, pose.T_world_root, pose.theta, corr.p_model, corr.part)
+    index = jnp.clip(corr.camera, 0, ctx.crop_cameras.K.shape[0] - 1)
+    px, _ = project_ideal(ctx.crop_cameras, p_world, index)
     return jnp.linalg.norm(px - corr.pixel, axis=-1)
 
 

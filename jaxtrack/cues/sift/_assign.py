@@ -16,26 +16,11 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ...geometry import Camera, KinematicModel, part_transforms, rigid_model, select_camera, transform_point_columns
+from ...geometry import Camera, KinematicModel, part_points_world, project_ideal, rigid_model
 from ...render import Mesh, RenderOutput
 from ...solve import Correspondences, Cue, correspondences_from_pixels
 from ._detect import SiftMatches
 from ._filters import SiftParams
-
-
-def _project(cameras: Camera, camera_index, p_world):
-    """Ideal (undistorted) pixels (N, 2) and depth (N,) of world points in per-row cameras."""
-    cam = select_camera(cameras, camera_index) if cameras.K.ndim == 3 else cameras
-    x, y, z = transform_point_columns(cam.T_cam_world, p_world[:, 0], p_world[:, 1], p_world[:, 2])
-    safe_z = jnp.where(z > 1e-6, z, 1e-6)
-    xn, yn = x / safe_z, y / safe_z
-    K = cam.K
-    return jnp.stack([K[..., 0, 0] * xn + K[..., 0, 1] * yn + K[..., 0, 2], K[..., 1, 1] * yn + K[..., 1, 2]], -1), z
-
-
-def _world_points(model: KinematicModel, T_world_root, theta, p_model, part):
-    T = part_transforms(model, T_world_root, theta)[part]  # (N, 4, 4)
-    return jnp.stack(transform_point_columns(T, p_model[:, 0], p_model[:, 1], p_model[:, 2]), -1)
 
 
 def _surface_rows(p_t, p_t1, valid, rendered: RenderOutput):
@@ -65,10 +50,10 @@ def _correspondences_body(matches, rendered, cameras, params, weight, mesh, mode
         pixel, p_model, part, ok = jax.vmap(_surface_rows)(matches.p_t, matches.p_t1, matches.valid, rendered)
     else:
         model = rigid_model(mesh.vertices.dtype) if model is None else model
-        v_world = _world_points(model, T_world_root, theta, mesh.vertices, mesh.vertex_part)
+        v_world = part_points_world(model, T_world_root, theta, mesh.vertices, mesh.vertex_part)
 
         def vertex_pixels(cam):
-            return _project(cam, None, v_world)[0]
+            return project_ideal(cam, v_world)[0]
 
         cams = cameras if cameras.K.ndim == 3 else jax.tree.map(lambda x: x[None], cameras)
         vertex_px = jax.vmap(vertex_pixels)(cams).astype(matches.p_t.dtype)
@@ -146,8 +131,8 @@ def _backprojection_body(
     dtype = corr.n.dtype
     T_world_root = jnp.asarray(T_world_root, dtype)
     theta = jnp.asarray(theta, dtype)
-    p_world = _world_points(model, T_world_root, theta, corr.p_model, corr.part)
-    px, z = _project(cameras, corr.camera, p_world)
+    p_world = part_points_world(model, T_world_root, theta, corr.p_model, corr.part)
+    px, z = project_ideal(cameras, p_world, corr.camera)
     close = (jnp.linalg.norm(px - corr.pixel, axis=-1) <= params.backprojection_px) & (z > 0)
     return corr.with_weight(jnp.where(close, corr.weight, 0.0))
 
@@ -161,6 +146,6 @@ def reprojection_errors(corr: Correspondences, cameras: Camera, model: Kinematic
     ground truth at t+1, for evaluation). Jittable."""
     dtype = corr.n.dtype
     theta = jnp.zeros((model.num_joints,), dtype) if theta is None else jnp.asarray(theta, dtype)
-    p_world = _world_points(model, jnp.asarray(T_world_root, dtype), theta, corr.p_model, corr.part)
-    px, _ = _project(cameras, corr.camera, p_world)
+    p_world = part_points_world(model, jnp.asarray(T_world_root, dtype), theta, corr.p_model, corr.part)
+    px, _ = project_ideal(cameras, p_world, corr.camera)
     return jnp.linalg.norm(px - corr.pixel, axis=-1)
