@@ -214,3 +214,22 @@ def test_human_table2_checks_its_working_shape_and_region_options():
         module.main(["--working-shape", "128", "--out", ""])
     with pytest.raises(SystemExit):
         module.main(["--region", "dense", "--out", ""])
+
+
+def test_energy_bias_summary_and_report():
+    """experiments/energy_bias.py without tracking: the summary's means, maxima, signed depth and the frames beyond
+    5° / 50 mm come from the rows, and the report has one row per (sequence, cue set) with them."""
+    eb = _load("energy_bias")
+    rows = [{"frame": 0, "rot_deg": 1.0, "trans_mm": 3.0, "depth_mm": -2.0, "status": "OK"},
+            {"frame": 4, "rot_deg": 6.0, "trans_mm": 95.0, "depth_mm": 92.0, "status": "OK"},
+            {"frame": 8, "rot_deg": 2.0, "trans_mm": 10.0, "depth_mm": 8.0, "status": "OK"}]
+    s = eb.summary(rows)
+    assert s["n"] == 3 and s["beyond"] == 1
+    np.testing.assert_allclose([s["rot_mean"], s["rot_max"], s["trans_max"], s["depth_mean"], s["depth_abs_max"]],
+                               [3.0, 6.0, 95.0, 98.0 / 3, 92.0])
+    text = eb.report("cmd", ((0.0,) * 3, (0.0,) * 3), 60.0, {("truck", "lines"): rows},
+                     {"truck": ("turntable-truck", 320, 240, 60, 0.0)}, 4)
+    row = next(t for t in text.splitlines() if t.startswith("| truck | lines |"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[2:] == ["3", "3.00", "6.00", "36.0", "95.0", "+32.7", "92.0", "1"]
+    assert "4: 6.0 / +92" in text
