@@ -16,6 +16,9 @@ reports mean errors of 2.3° (teapot), 2° (car) and 4.6° (teapot, 50 % noise).
     python experiments/turntable.py                      # writes experiments/results/turntable.md / .png
     python experiments/turntable.py --cues region+flow+sift,region --scale 0.5 --budget-min 25
     python experiments/turntable.py --quick --out /tmp/t.md   # smoke run (track_presets --quick's program)
+
+DLR M3T (region; region + ORB texture) runs on the same sequences where its baseline is built on this machine
+(`../shared/baselines/m3t/`; `--no-m3t` skips it), scored the same way from its results CSV.
 """
 
 from __future__ import annotations
@@ -97,6 +100,40 @@ def track_turntable(seq, cues: tuple[str, ...], out_dir: pathlib.Path, tag: str)
     }
 
 
+def track_m3t_turntable(seq, config: str, out_dir: pathlib.Path) -> dict:
+    """DLR M3T (`config` region / regtex, camera 0, one thread, no resets) on a turntable sequence, scored as
+    `track_turntable` scores ours (its results CSV read back; ms = median CSV `time`)."""
+    import subprocess
+
+    from jaxtrack.io import read_bop_results
+    from jaxtrack.track import evaluate_tracking
+
+    csv = out_dir / f"m3t_{config}_{seq.root.name}.csv"
+    cmd = [str(tp.M3T_RUN), str(seq.root), "-o", str(csv), "--config", config]
+    proc = subprocess.run(cmd, check=False, capture_output=True, text=True, timeout=1800)
+    if proc.returncode != 0 or not csv.is_file():
+        raise RuntimeError(f"M3T {config} on {seq.root} failed ({proc.returncode}): {proc.stderr[-2000:]}")
+    results = sorted((r for r in read_bop_results(csv) if r[0] == 0), key=lambda r: r[1])
+    view = seq.views[0]
+    T_world_cam = np.linalg.inv(np.asarray(view.T_cam_world, np.float64))
+    oid = results[0][2]
+    T_world_est = np.einsum("ij,fjk->fik", T_world_cam, np.stack([r[4] for r in results]))
+    T_world_gt = np.einsum("ij,fjk->fik", T_world_cam, np.asarray(view.T_cam_obj[oid], np.float64)[: len(results)])
+    est, true = turntable_angles(T_world_est), turntable_angles(T_world_gt)
+    err = np.abs(est - true)[1:]
+    ev = evaluate_tracking(csv, seq, camera=0)
+    tracked = ~ev.initial & ev.has_gt
+    failed = (ev.rot_deg > 10) | (ev.trans_mm > 0.1 * ev.diameter_mm)
+    first = np.nonzero(failed & tracked)[0]
+    return {
+        "frames": int(tracked.sum()), "angle_est": est, "angle_true": true, "angle_err_mean": float(err.mean()),
+        "angle_err_max": float(err.max()), "rot_deg": float(np.mean(ev.rot_deg[tracked])),
+        "trans_mm": float(np.mean(ev.trans_mm[tracked])),
+        "first_failure": int(ev.im_ids[first[0]]) if first.size else None, "lost": None,
+        "ms": 1000.0 * float(np.median([r[5] for r in results[1:]])), "compiles": None, "diameter_mm": ev.diameter_mm,
+    }
+
+
 def report(command, runs, cue_sets, rows, sizes, skipped, failed, load_start, load_end, elapsed_s, args) -> str:
     lines = [
         "# Turntable: rotation angle about the turntable axis (paper Fig. 10, 11)",
@@ -126,7 +163,7 @@ def report(command, runs, cue_sets, rows, sizes, skipped, failed, load_start, lo
         ("angle error: |a_est − a_true| of the turn about the turntable axis since frame 0; rot / trans: the full 3D "
          "pose errors in camera 0; first failure: first frame with rotation error > 10° or translation error > 10 % of "
          "the model diameter ('none': tracked throughout); LOST: frames the tracker itself reported lost; ms / frame: "
-         "median host time of the frames that did not compile the step."),
+         "median host time of the frames that did not compile the step (M3T: its CSV `time`, one thread)."),
         "",
         "| sequence | cues | frames | mean angle err ° | max angle err ° | mean rot err ° | mean trans err mm | first failure | LOST frames | ms / frame | compiles |",
         "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
@@ -138,8 +175,8 @@ def report(command, runs, cue_sets, rows, sizes, skipped, failed, load_start, lo
                 continue
             lines.append(
                 f"| {label} | {cues} | {r['frames']} | {r['angle_err_mean']:.2f} | {r['angle_err_max']:.2f} | {r['rot_deg']:.2f} | "
-                f"{r['trans_mm']:.1f} | {'none' if r['first_failure'] is None else r['first_failure']} | {r['lost']} | "
-                f"{r['ms']:.0f} | {r['compiles']} |"
+                f"{r['trans_mm']:.1f} | {'none' if r['first_failure'] is None else r['first_failure']} | "
+                f"{'-' if r['lost'] is None else r['lost']} | {r['ms']:.0f} | {'-' if r['compiles'] is None else r['compiles']} |"
             )
     notes = [
         "",
@@ -150,6 +187,7 @@ def report(command, runs, cue_sets, rows, sizes, skipped, failed, load_start, lo
          + ("" if args.frames is None else f", the first {args.frames} frames") + ", to fit the run on the shared "
          "2-core machine. The paper's sequences are real turntable recordings; these are synthetic with exact truth."),
         "- Angle truth is the generator's turntable angle (6° per frame; read back from scene_gt.json, not assumed).",
+        (args.m3t_note or ""),
         (f"- Not run, the time budget (--budget-min {args.budget_min:g}) was spent: "
          + ", ".join(f"{c} on {label}" for c, label in skipped) + ".") if skipped else "",
         ("- Failed: " + "; ".join(failed)) if failed else "",
@@ -201,6 +239,7 @@ def main(argv=None):
     ap.add_argument("--scale", type=float, default=0.5, help="image scale (1 = 640x480)")
     ap.add_argument("--budget-min", type=float, default=None, help="start no new run after this many minutes")
     ap.add_argument("--seq-dir", default=None, help="folder for the rendered sequences (default: a temporary one)")
+    ap.add_argument("--no-m3t", action="store_true", help="skip the DLR M3T baseline")
     ap.add_argument("--out", default=None, help="markdown output (default experiments/results/turntable.md; --quick: none)")
     ap.add_argument("--plot", default=None, help="figure (default experiments/results/turntable.png; --quick: none)")
     args = ap.parse_args(argv)
@@ -217,6 +256,9 @@ def main(argv=None):
     else:
         runs = tuple((label, p, args.noise_fraction if s > 0 else 0.0) for label, p, s in RUNS)
     cue_sets = tp.parse_subsets(args.cues)
+    use_m3t = not args.quick and not args.no_m3t and tp.m3t_available()
+    args.m3t_note = ("" if use_m3t or args.quick else "- M3T skipped: " + (
+        "--no-m3t." if args.no_m3t else "the baseline is not built on this machine (../shared/baselines/m3t/)."))
 
     import jax
 
@@ -251,7 +293,14 @@ def main(argv=None):
                       f"{clock.minutes():.1f} min)", file=sys.stderr, flush=True)
             if not args.quick:
                 jax.clear_caches()  # this cue set's programs are not used again
-        text = report(command, runs, cue_sets, rows, sizes, skipped, failed, clock.load_start, os.getloadavg(),
+        for config in tp.M3T_CONFIGS if use_m3t else ():
+            for label, _, _ in runs:
+                try:
+                    rows.append((f"M3T {config}", label, track_m3t_turntable(seqs[label], config, work)))
+                except Exception as e:  # noqa: BLE001 - a failed baseline run is reported, the others go on
+                    failed.append(f"M3T {config} on {label} ({type(e).__name__}: {str(e).strip()[:300]})")
+        m3t_sets = [f"M3T {c}" for c in tp.M3T_CONFIGS if any(cues == f"M3T {c}" for cues, _, _ in rows)]
+        text = report(command, runs, tuple(cue_sets) + tuple(m3t_sets), rows, sizes, skipped, failed, clock.load_start, os.getloadavg(),
                       clock.elapsed_s(), args)
     finally:
         shutil.rmtree(work, ignore_errors=True)
