@@ -17,7 +17,7 @@ import numpy.typing as npt
 from jax.typing import ArrayLike, DTypeLike
 
 from .._device import to_device
-from ._lie import se3_inverse, transform_points
+from ._lie import se3_inverse, transform_point_columns, transform_points
 from ._validate import checked_array, checked_image_size, checked_intrinsics, checked_rotation
 
 
@@ -129,9 +129,7 @@ def project_ideal(cameras: Camera, p_world: ArrayLike, camera_index: ArrayLike |
         raise ValueError("project_ideal: a stacked rig needs camera_index (the camera of each point)")
     cam = select_camera(cameras, camera_index) if cameras.K.ndim == 3 else cameras
     p_world = jnp.asarray(p_world)
-    T = cam.T_cam_world
-    x, y, z = (T[..., i, 0] * p_world[:, 0] + T[..., i, 1] * p_world[:, 1] + T[..., i, 2] * p_world[:, 2] + T[..., i, 3]
-               for i in range(3))
+    x, y, z = transform_point_columns(cam.T_cam_world, p_world[:, 0], p_world[:, 1], p_world[:, 2])
     safe_z = jnp.where(z > 1e-6, z, 1e-6)
     xn, yn = x / safe_z, y / safe_z
     K = cam.K

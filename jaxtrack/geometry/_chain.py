@@ -25,7 +25,7 @@ import numpy.typing as npt
 from jax.typing import DTypeLike
 
 from .._device import to_device
-from ._lie import se3_exp
+from ._lie import se3_exp, transform_point_columns
 
 
 class KinematicModel(eqx.Module):
@@ -174,5 +174,4 @@ def part_points_world(model: KinematicModel, T_world_root: jax.Array, theta: jax
     """World coordinates (N, 3) of model points (N, 3) of parts (N,) int at the pose (T_world_root, θ) (eq. 2).
     Jittable."""
     T = part_transforms(model, T_world_root, theta)[part]  # (N, 4, 4)
-    return jnp.stack([T[:, i, 0] * p_model[:, 0] + T[:, i, 1] * p_model[:, 1] + T[:, i, 2] * p_model[:, 2] + T[:, i, 3]
-                      for i in range(3)], -1)
+    return jnp.stack(transform_point_columns(T, p_model[:, 0], p_model[:, 1], p_model[:, 2]), -1)
