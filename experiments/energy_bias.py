@@ -51,7 +51,7 @@ def bias_run(seq, cues: tuple[str, ...], frames: list[int]) -> list[dict]:
     rig = stack_cameras([make_camera(view.K, view.width, view.height, view.T_cam_world[:3, :3], view.T_cam_world[:3, 3])])
     T_cam_world = np.asarray(view.T_cam_world, np.float64)
     T_world = np.einsum("ij,fjk->fik", np.linalg.inv(T_cam_world), np.asarray(view.T_cam_obj[oid], np.float64))
-    tracker = Tracker(load_mesh(seq.model_paths[oid]), rig, config=TrackerConfig(cues=cues))
+    tracker = Tracker(load_mesh(seq.model_paths[oid], seq.model_scale(oid)), rig, config=TrackerConfig(cues=cues))
     rows = []
     for k in frames:
         image = view.read_frame(k, dtype=None)[None]
@@ -104,7 +104,8 @@ def main(argv=None):
     ap.add_argument("--scale", type=float, default=0.5, help="image scale (1 = 640x480)")
     ap.add_argument("--quick", action="store_true", help="smoke run: the teapot, frames 0 and 1, the lines")
     ap.add_argument("--seq-dir", default=None, help="folder for the rendered sequences (and reuse them)")
-    ap.add_argument("--out", default=None, help="markdown output (default experiments/results/energy_bias.md; --quick: none)")
+    ap.add_argument("--out", default=None,
+                    help="markdown output, JSON beside it (default experiments/results/energy_bias.md; --quick: none)")
     args = ap.parse_args(argv)
     if args.stride < 1:
         raise SystemExit("energy_bias: --stride must be ≥ 1")
@@ -135,7 +136,7 @@ def main(argv=None):
     finally:
         if not args.seq_dir:
             shutil.rmtree(seq_dir, ignore_errors=True)
-    text = report(command, (clock.load_start, os.getloadavg()), clock.elapsed_s(), runs, sizes, args.stride)
+    text = report(command, (clock.load_start, os.getloadavg()), clock.elapsed_s(), runs, sizes, 1 if args.quick else args.stride)
     print(text)
     out = output_path(args.out, RESULTS / "energy_bias.md", args.quick)
     save_text(out, text)

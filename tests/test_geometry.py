@@ -136,14 +136,15 @@ def test_camera_rig_batches_and_rejects_bad_input():
         stack_cameras([cams])
 
 
-
 def test_project_ideal_picks_each_points_camera_and_is_the_undistorted_projection():
-    """Per-row camera selection equals projecting every point in every camera and picking; with no distortion it
-    is `project_points`; a rig without camera indices is refused. `part_points_world` is eq. 2 applied per row."""
+    """Per-row camera selection equals projecting every point in every camera and picking (one camera with skew);
+    with no distortion it is `project_points`; a point behind a camera keeps a finite pixel and its negative depth;
+    a rig without camera indices is refused. `part_points_world` is eq. 2 applied per row."""
     rng = np.random.default_rng(0)
     R = cv2.Rodrigues(np.array([0.1, -0.2, 0.05]))[0]
+    K_skew = K * np.array([[1.1], [0.9], [1.0]]) + np.array([[0.0, 3.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
     cams = stack_cameras([make_camera(K, 640, 480, dtype=jnp.float64),
-                          make_camera(K * np.array([[1.1], [0.9], [1.0]]), 640, 480, R, [30.0, -20.0, 50.0], dtype=jnp.float64)])
+                          make_camera(K_skew, 640, 480, R, [30.0, -20.0, 50.0], dtype=jnp.float64)])
     p = jnp.asarray(rng.uniform([-100, -100, 600], [100, 100, 900], (40, 3)))
     index = jnp.asarray(rng.integers(0, 2, 40), jnp.int32)
     px, z = project_ideal(cams, p, index)
@@ -154,6 +155,8 @@ def test_project_ideal_picks_each_points_camera_and_is_the_undistorted_projectio
         np.testing.assert_allclose(np.asarray(z)[pick], np.asarray(zc)[pick], atol=1e-9)
     one, _ = project_ideal(select_camera(cams, 1), p)
     np.testing.assert_allclose(np.asarray(one), np.asarray(project_points(select_camera(cams, 1), p)[0]), atol=1e-9)
+    behind_px, behind_z = project_ideal(select_camera(cams, 0), jnp.asarray([[10.0, 5.0, -300.0]]))
+    assert np.all(np.isfinite(np.asarray(behind_px))) and float(behind_z[0]) < 0
     with pytest.raises(ValueError, match="camera_index"):
         project_ideal(cams, p)
     model = chain_model([-1, 0], [(0, 0, 1)], [(50.0, 0, 0)], dtype=jnp.float64)
@@ -162,6 +165,7 @@ def test_project_ideal_picks_each_points_camera_and_is_the_undistorted_projectio
     T = np.asarray(part_transforms(model, T_root, theta))[np.asarray(part)]
     expected = np.einsum("nij,nj->ni", T[:, :3, :3], np.asarray(p)) + T[:, :3, 3]
     np.testing.assert_allclose(np.asarray(part_points_world(model, T_root, theta, p, part)), expected, atol=1e-9)
+
 
 @pytest.mark.parametrize(
     "kwargs, message",

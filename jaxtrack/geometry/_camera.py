@@ -119,7 +119,8 @@ def project_ideal(cameras: Camera, p_world: ArrayLike, camera_index: ArrayLike |
     Args:
         cameras: a stacked rig (C cameras; `camera_index` picks each point's) or one unbatched camera.
         p_world: (N, 3) world points.
-        camera_index: (N,) int camera of each point (rig only; None with one camera).
+        camera_index: (N,) int camera of each point, in [0, C) (rig only; an index beyond the rig is clamped by the
+            gather and a negative one wraps: clip it first where it can be out of range; ignored with one camera).
 
     Returns:
         (px (N, 2) pixels, z (N,) camera-frame depth); points behind a camera get a finite, meaningless
