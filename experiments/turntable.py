@@ -117,8 +117,13 @@ def track_m3t_turntable(seq, config: str, out_dir: pathlib.Path) -> dict:
     view = seq.views[0]
     T_world_cam = np.linalg.inv(np.asarray(view.T_cam_world, np.float64))
     oid = results[0][2]
+    index = {int(i): k for k, i in enumerate(view.frame_ids)}  # BOP image id → frame index of the truth
+    missing = [r[1] for r in results if r[1] not in index]
+    if missing:
+        raise RuntimeError(f"M3T results {csv} name images the sequence does not have: {missing[:5]}")
     T_world_est = np.einsum("ij,fjk->fik", T_world_cam, np.stack([r[4] for r in results]))
-    T_world_gt = np.einsum("ij,fjk->fik", T_world_cam, np.asarray(view.T_cam_obj[oid], np.float64)[: len(results)])
+    T_world_gt = np.einsum("ij,fjk->fik", T_world_cam,
+                           np.asarray(view.T_cam_obj[oid], np.float64)[[index[r[1]] for r in results]])
     est, true = turntable_angles(T_world_est), turntable_angles(T_world_gt)
     err = np.abs(est - true)[1:]
     ev = evaluate_tracking(csv, seq, camera=0)
@@ -298,7 +303,7 @@ def main(argv=None):
                 try:
                     rows.append((f"M3T {config}", label, track_m3t_turntable(seqs[label], config, work)))
                 except Exception as e:  # noqa: BLE001 - a failed baseline run is reported, the others go on
-                    failed.append(f"M3T {config} on {label} ({type(e).__name__}: {str(e).strip()[:300]})")
+                    failed.append(f"M3T {config} on {label} ({type(e).__name__}: {str(e).strip()[-300:]})")
         m3t_sets = [f"M3T {c}" for c in tp.M3T_CONFIGS if any(cues == f"M3T {c}" for cues, _, _ in rows)]
         text = report(command, runs, tuple(cue_sets) + tuple(m3t_sets), rows, sizes, skipped, failed, clock.load_start, os.getloadavg(),
                       clock.elapsed_s(), args)

@@ -233,3 +233,37 @@ def test_energy_bias_summary_and_report():
     cells = [c.strip() for c in row.strip("|").split("|")]
     assert cells[2:] == ["3", "3.00", "6.00", "36.0", "95.0", "+32.7", "92.0", "1"]
     assert "4: 6.0 / +92" in text
+
+
+def test_turntable_scores_m3t_results_like_its_own(tmp_path, monkeypatch):
+    """experiments/turntable.py's M3T path without M3T: a stand-in runner writes the ground truth as its BOP results
+    CSV (frames in reverse order, as a CSV may list them); the score is then exact (angle error 0, no failure), and the
+    ms column is the CSV's time."""
+    import dataclasses
+    import textwrap
+
+    from jaxtrack.io import read_sequence
+
+    tt = _load("turntable")
+    cfg = dataclasses.replace(tt.tp.preset_config("occluded-box", 0.15, 4), motion="turntable", occluders=0)
+    seq = read_sequence(tt.tp.write_preset("occluded-box-turntable", cfg, tmp_path))
+    runner = tmp_path / "m3t_stand_in.py"
+    runner.write_text(textwrap.dedent(f"""\
+        #!{sys.executable}
+        import json, pathlib, sys
+        seq, out = pathlib.Path(sys.argv[1]), pathlib.Path(sys.argv[sys.argv.index("-o") + 1])
+        gt = json.loads((seq / "000000" / "scene_gt.json").read_text())
+        rows = ["scene_id,im_id,obj_id,score,R,t,time"]
+        for im in sorted(gt, key=int, reverse=True):
+            g = gt[im][0]
+            R, t = " ".join(map(str, g["cam_R_m2c"])), " ".join(map(str, g["cam_t_m2c"]))
+            rows.append(f"0,{{im}},{{g['obj_id']}},1,{{R}},{{t}},0.002")
+        out.write_text("\\n".join(rows) + "\\n")
+        """))
+    runner.chmod(0o755)
+    monkeypatch.setattr(tt.tp, "M3T_RUN", runner)
+    r = tt.track_m3t_turntable(seq, "region", tmp_path)
+    assert r["frames"] == 3 and r["first_failure"] is None and r["lost"] is None
+    assert r["angle_err_mean"] < 1e-6 and r["rot_deg"] < 1e-3 and r["trans_mm"] < 1e-3
+    assert abs(r["ms"] - 2.0) < 1e-9
+    np.testing.assert_allclose(r["angle_est"], r["angle_true"], atol=1e-6)
