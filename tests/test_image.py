@@ -9,6 +9,7 @@ import pytest
 from jaxtrack.image import (
     crop_window,
     full_to_window,
+    gaussian_blur_traced,
     median_filter,
     paste_window,
     paste_window_scaled,
@@ -88,3 +89,38 @@ def test_median_filter_matches_scipy_and_respects_the_region():
     np.testing.assert_array_equal(out[~valid], img[~valid])
     with pytest.raises(ValueError, match="3x3 and 5x5"):
         median_filter(jnp.asarray(img), 7)
+
+
+def _blur_reference(img, sigma, radius):
+    """numpy separable Gaussian (taps over ±radius, normalised), border pixels replicated."""
+    x = np.arange(-radius, radius + 1)
+    k = np.exp(-0.5 * (x / sigma) ** 2)
+    k /= k.sum()
+    out = np.asarray(img, np.float64)
+    for axis in (0, 1):
+        pad = [(0, 0)] * out.ndim
+        pad[axis] = (radius, radius)
+        padded = np.pad(out, pad, mode="edge")
+        n = out.shape[axis]
+        out = sum(k[i] * np.take(padded, np.arange(i, i + n), axis=axis) for i in range(len(k)))
+    return out
+
+
+def test_traced_gaussian_blur_matches_a_reference_is_the_identity_at_zero_and_differentiates_in_sigma():
+    img = jnp.asarray(np.random.default_rng(0).uniform(0, 255, (9, 11, 3)))
+    np.testing.assert_array_equal(gaussian_blur_traced(img, 0.0), img)  # exactly the input: the method's default
+    for sigma in (0.6, 1.0, 1.7):  # radius = ceil(3 · max_sigma) = 6
+        np.testing.assert_allclose(gaussian_blur_traced(img, sigma), _blur_reference(img, sigma, 6), rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(gaussian_blur_traced(img, 5.0), gaussian_blur_traced(img, 2.0))  # σ clipped to max_sigma
+    # One program for every σ; vmap over σ gives the per-σ results.
+    sigmas = jnp.array([0.0, 0.8, 1.5])
+    batched = jax.vmap(lambda s: gaussian_blur_traced(img, s))(sigmas)
+    for b, s in zip(batched, sigmas, strict=True):
+        np.testing.assert_allclose(b, gaussian_blur_traced(img, s), rtol=1e-12, atol=1e-9)
+    # d/dσ of a scalar readout against central differences (float64).
+    def readout(s):
+        return jnp.sum(gaussian_blur_traced(img, s) * jnp.linspace(-1.0, 1.0, img.size).reshape(img.shape))
+
+    h = 1e-5
+    fd = (readout(1.2 + h) - readout(1.2 - h)) / (2 * h)
+    np.testing.assert_allclose(jax.grad(readout)(1.2), fd, rtol=1e-6)

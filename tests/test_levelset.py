@@ -29,6 +29,7 @@ from jaxtrack.cues.levelset import (
     region_membership,
     region_params,
     regularised_matches,
+    smoothed_features,
     time_step,
 )
 from jaxtrack.geometry import chain_model, make_camera, se3_exp, stack_cameras
@@ -445,3 +446,17 @@ def test_fifty_refinements_compile_once(rigid_scene):
         res, _ = refiner(s["img"], _perturb(s["T"], 2.0, rng.normal(size=6) / np.sqrt(6) * [1, 1, 1, 0.05, 0.05, 0.05]))
         assert np.all(np.isfinite(np.asarray(res.T_world_root)))
     assert eqx.debug.get_num_traces(refine_pose_region) == before
+
+
+def test_feature_smoothing_is_off_by_default_and_brings_salt_noise_pixels_toward_their_region():
+    """`RegionParams.feature_sigma`: 0 by default (the channels as they are); σ = 1 on a flat region half of
+    whose pixels are uniform noise narrows the channels' spread around the region's own mean."""
+    rng = np.random.default_rng(1)
+    img = np.full((40, 40, 3), (210.0, 180.0, 60.0))
+    salt = rng.random((40, 40)) < 0.5
+    img[salt] = rng.uniform(0, 255, (int(salt.sum()), 3))
+    assert float(region_params((40, 40)).feature_sigma) == 0.0
+    np.testing.assert_array_equal(smoothed_features(jnp.asarray(img), False, 0.0), feature_channels(jnp.asarray(img), False))
+    raw = np.asarray(feature_channels(jnp.asarray(img), False))[8:-8, 8:-8]
+    smooth = np.asarray(smoothed_features(jnp.asarray(img), False, 1.0))[8:-8, 8:-8]
+    assert np.all(smooth.std(axis=(0, 1)) < 0.5 * raw.std(axis=(0, 1)))

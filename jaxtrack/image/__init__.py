@@ -10,6 +10,7 @@ from ._distance import nearest_seed_distance as nearest_seed_distance
 from ._distance import nearest_seed_points as nearest_seed_points
 from ._distance import silhouette_sdf as silhouette_sdf
 from ._filters import gaussian_blur as gaussian_blur
+from ._filters import gaussian_blur_traced as gaussian_blur_traced
 from ._filters import gaussian_kernel as gaussian_kernel
 from ._median import median_filter as median_filter
 from ._median import median_network as median_network

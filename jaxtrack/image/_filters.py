@@ -1,4 +1,5 @@
-"""Separable Gaussian filtering of (H, W, C) arrays (σ static: it sets the number of taps)."""
+"""Separable Gaussian filtering of (H, W, C) arrays: σ static (it sets the number of taps), or traced
+with a static largest σ (`gaussian_blur_traced`)."""
 
 from __future__ import annotations
 
@@ -36,3 +37,28 @@ def gaussian_blur(img, sigma: float):
         return img
     taps = gaussian_kernel(float(sigma))
     return _convolve_axis(_convolve_axis(img, taps, 0), taps, 1)
+
+
+def gaussian_blur_traced(img, sigma, max_sigma: float = 2.0):
+    """Separable Gaussian blur of an (H, W, C) image with σ a traced scalar (a parameter: vmap and grad over it).
+
+    The taps span the static radius ceil(3 · max_sigma) and are computed from σ at run time; σ is clipped to
+    [0, max_sigma]. σ ≤ 0 returns `img` itself (a `lax.cond`: nothing is computed; under `vmap` over σ both
+    branches run and the unblurred branch is selected).
+    """
+    radius = max(1, math.ceil(3.0 * float(max_sigma)))
+    sigma = jnp.clip(jnp.asarray(sigma, img.dtype), 0.0, max_sigma)
+
+    def blur(image):
+        x = jnp.arange(-radius, radius + 1, dtype=image.dtype)
+        k = jnp.exp(-0.5 * (x / jnp.maximum(sigma, 1e-3)) ** 2)
+        k = k / jnp.sum(k)
+        for axis in (0, 1):
+            n = image.shape[axis]
+            pad = [(0, 0)] * image.ndim
+            pad[axis] = (radius, radius)
+            padded = jnp.pad(image, pad, mode="edge")
+            image = sum(k[i] * jax.lax.slice_in_dim(padded, i, i + n, axis=axis) for i in range(2 * radius + 1))
+        return image
+
+    return jax.lax.cond(sigma > 0, blur, lambda image: image, img)

@@ -17,6 +17,7 @@ from ._energy import region_memberships as region_memberships
 from ._energy import region_params as region_params
 from ._energy import time_step as time_step
 from ._features import feature_channels as feature_channels
+from ._features import smoothed_features as smoothed_features
 from ._features import texture_channel as texture_channel
 from ._host import RegionRefiner as RegionRefiner
 from ._host import projected_boxes as projected_boxes

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from ...image import as_channels, gaussian_blur, image_gradients
+from ...image import as_channels, gaussian_blur, gaussian_blur_traced, image_gradients
 
 
 def texture_channel(grey, sigma: float = 1.5):
@@ -44,3 +44,10 @@ def feature_channels(image, texture: bool = True, texture_sigma: float = 1.5):
         return img
     grey = jnp.mean(img, axis=-1)
     return jnp.concatenate([img, texture_channel(grey, texture_sigma)[..., None]], axis=-1)
+
+
+def smoothed_features(image, texture: bool, sigma):
+    """`feature_channels` of an (H, W[, 3]) crop, then Gaussian-smoothed with the traced σ
+    (`RegionParams.feature_sigma`; 0 = the channels as they are). (H, W, K)."""
+    features = feature_channels(image, texture)
+    return gaussian_blur_traced(features, jnp.asarray(sigma, features.dtype))

@@ -33,7 +33,7 @@ from ...render import Mesh, RasterPlan, render
 from ...solve import Correspondences, Cue, CueWeights, correspondences_from_pixels, weights_per_pixel
 from ._densities import LocalDensities, check_grid, data_term
 from ._energy import RegionParams, evolve
-from ._features import feature_channels
+from ._features import feature_channels, smoothed_features
 from ._redistance import band_sdf
 from ._refine import RegionConfig, RegionState, _densities, _paste_state, contour_matches, initial_state
 
@@ -116,7 +116,8 @@ class LevelSetRegion(Modality):
 
         def per_camera(image, face_id):
             phi0 = band_sdf(face_id >= 0).astype(dtype)
-            return phi0, _densities(feature_channels(image, self.config.texture).astype(dtype), phi0, rp.density_band, rp, f)
+            features = smoothed_features(image, self.config.texture, rp.feature_sigma).astype(dtype)
+            return phi0, _densities(features, phi0, rp.density_band, rp, f)
 
         phi0, dens = jax.vmap(per_camera)(ctx.crops, ctx.render.face_id)
         return _paste_state(empty, phi0, dens, ctx.offsets, f, ctx.scales)
@@ -125,7 +126,8 @@ class LevelSetRegion(Modality):
         f = self.config.density_factor
         check_grid(ctx.crop_shape, f)
         dtype = ctx.pose_t.T_world_root.dtype
-        features = jax.vmap(lambda im: feature_channels(im, self.config.texture))(ctx.crops).astype(dtype)
+        sigma = params.region.feature_sigma
+        features = jax.vmap(lambda im: smoothed_features(im, self.config.texture, sigma))(ctx.crops).astype(dtype)
         coarse = (ctx.crop_shape[0] // f, ctx.crop_shape[1] // f)
         coarse_offsets = ctx.offsets // f if ctx.scales is None else ctx.offsets / f
         carried = _crop_densities(state.densities, coarse_offsets, coarse, ctx.scales)
