@@ -153,6 +153,8 @@ def main(argv=None):
         raise SystemExit("levelset_noise: --frames must be ≥ 2")
     command = command_line(__file__, argv)
 
+    import jax
+
     from jaxtrack.io import read_sequence
 
     # σ and ν are arrays: one compiled program serves every setting.
@@ -170,6 +172,7 @@ def main(argv=None):
             for sigma, nu in settings:
                 for label in runs:
                     r = track_run(seqs[label], tuple(cues.split("+")), sigma, nu, args.seg_frames)
+                    jax.clear_caches()  # a lost run compiles crop classes no other run uses; one process holds them all
                     rows.append((cues, (sigma, nu), label, r))
                     print(f"[levelset_noise] {cues} σ={sigma:g} ν×{nu:g} {label}: rot {r['rot_deg']:.2f}° trans "
                           f"{r['trans_mm']:.1f} mm, moved right {r['moved_right']}/{r['moved']} ({clock.minutes():.1f} min)",

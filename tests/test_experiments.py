@@ -267,3 +267,22 @@ def test_turntable_scores_m3t_results_like_its_own(tmp_path, monkeypatch):
     assert r["angle_err_mean"] < 1e-6 and r["rot_deg"] < 1e-3 and r["trans_mm"] < 1e-3
     assert abs(r["ms"] - 2.0) < 1e-9
     np.testing.assert_allclose(r["angle_est"], r["angle_true"], atol=1e-6)
+
+
+def test_levelset_noise_scores_the_pixels_the_motion_moved_and_reads_its_settings():
+    ln = _load("levelset_noise")
+    prev = np.zeros((10, 12), bool)
+    prev[2:6, 2:6] = True
+    now = np.zeros((10, 12), bool)
+    now[2:6, 4:8] = True  # moved 2 px right: 16 pixels changed
+    phi = np.where(now[1:9, 1:11], 1.0, -1.0)  # a crop at (row 1, column 1) that follows the object
+    assert ln.moved_pixels_right(phi, (1, 1), now, prev) == (16, 16)
+    stuck = np.where(prev[1:9, 1:11], 1.0, -1.0)  # a segmentation left on the previous silhouette
+    assert ln.moved_pixels_right(stuck, (1, 1), now, prev) == (16, 0)
+    # A crop that reaches past the frame's border is cut, not wrapped: outside it nothing is object, which is
+    # right for the 8 pixels the object left and wrong for the 8 it entered.
+    assert ln.moved_pixels_right(np.ones((6, 6)), (7, 9), now, prev) == (16, 8)
+    assert ln.parse_settings("0:1,1:0.3") == [(0.0, 1.0), (1.0, 0.3)]
+    for bad in ("1", "3:1", "1:0", "a:b"):
+        with pytest.raises(SystemExit, match="--settings|SIGMA"):
+            ln.parse_settings(bad)
