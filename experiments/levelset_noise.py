@@ -72,6 +72,7 @@ def track_run(seq, cues: tuple[str, ...], sigma: float, nu_factor: float, seg_fr
     """Track `seq` with the level set at (feature_sigma, ν factor); errors, turntable angle, moved pixels right."""
     import cv2
     import equinox as eqx
+    import jax.numpy as jnp
 
     from jaxtrack.io import load_mesh
     from jaxtrack.track import Tracker
@@ -81,7 +82,7 @@ def track_run(seq, cues: tuple[str, ...], sigma: float, nu_factor: float, seg_fr
         def params_for(self, crop_shape):
             p = super().params_for(crop_shape)
             return eqx.tree_at(lambda q: (q.region.feature_sigma, q.region.nu), p,
-                               (p.region.feature_sigma * 0 + sigma, p.region.nu * nu_factor))
+                               (jnp.full_like(p.region.feature_sigma, sigma), p.region.nu * nu_factor))
 
     views, rig = _views_and_rig(seq, None)
     oid = min(seq.model_paths)
