@@ -18,16 +18,18 @@ def gaussian_kernel(sigma: float) -> np.ndarray:
     return k / k.sum()
 
 
-def _convolve_axis(img, taps: np.ndarray, axis: int):
-    """Correlate `img` with symmetric `taps` along `axis`, replicating the border pixels."""
+def _convolve_axis(img, taps, axis: int):
+    """Correlate `img` with symmetric `taps` along `axis`, replicating the border pixels. `taps`: host constants
+    (numpy; taken as Python floats, so they do not promote the image's dtype) or a traced (K,) array."""
     r = len(taps) // 2
     pad = [(0, 0)] * img.ndim
     pad[axis] = (r, r)
     padded = jnp.pad(img, pad, mode="edge")
     n = img.shape[axis]
+    host = isinstance(taps, np.ndarray)
     out = 0.0
-    for i, t in enumerate(taps):
-        out = out + float(t) * jax.lax.slice_in_dim(padded, i, i + n, axis=axis)  # a slice, not a gather
+    for i in range(len(taps)):
+        out = out + (float(taps[i]) if host else taps[i]) * jax.lax.slice_in_dim(padded, i, i + n, axis=axis)  # a slice
     return out
 
 
@@ -53,12 +55,6 @@ def gaussian_blur_traced(img, sigma, max_sigma: float = 2.0):
         x = jnp.arange(-radius, radius + 1, dtype=image.dtype)
         k = jnp.exp(-0.5 * (x / jnp.maximum(sigma, 1e-3)) ** 2)
         k = k / jnp.sum(k)
-        for axis in (0, 1):
-            n = image.shape[axis]
-            pad = [(0, 0)] * image.ndim
-            pad[axis] = (radius, radius)
-            padded = jnp.pad(image, pad, mode="edge")
-            image = sum(k[i] * jax.lax.slice_in_dim(padded, i, i + n, axis=axis) for i in range(2 * radius + 1))
-        return image
+        return _convolve_axis(_convolve_axis(image, k, 0), k, 1)
 
     return jax.lax.cond(sigma > 0, blur, lambda image: image, img)

@@ -49,5 +49,4 @@ def feature_channels(image, texture: bool = True, texture_sigma: float = 1.5):
 def smoothed_features(image, texture: bool, sigma):
     """`feature_channels` of an (H, W[, 3]) crop, then Gaussian-smoothed with the traced σ
     (`RegionParams.feature_sigma`; 0 = the channels as they are). (H, W, K)."""
-    features = feature_channels(image, texture)
-    return gaussian_blur_traced(features, jnp.asarray(sigma, features.dtype))
+    return gaussian_blur_traced(feature_channels(image, texture), sigma)
