@@ -110,14 +110,15 @@ def stage_breakdown(tracker, state, frames_np, repeats: int) -> dict:
     out = {"crop": list(crop_shape), "ms": {}, "calls": {}}
 
     # The whole frame as the tracker runs it (host crop + host inputs + the compiled step), same inputs.
-    motion_px = tracker.last_motion_px
+    motion_px, box_motion = tracker.last_motion_px, tracker.last_box_motion
 
     def whole():
-        tracker.last_motion_px = motion_px  # keep the crop margin (and so the compiled program) fixed
+        # keep the windows (and so the compiled program) fixed
+        tracker.last_motion_px, tracker.last_box_motion = motion_px, box_motion
         return tracker.step(state, frames)[1].T_world_root
 
     out["whole_ms"] = _median_ms(whole, repeats)
-    tracker.last_motion_px = motion_px
+    tracker.last_motion_px, tracker.last_box_motion = motion_px, box_motion
     _, result, _ = tracker.step(state, frames)
     rounds = int(result.iterations)
     out["rounds"] = rounds
@@ -250,11 +251,11 @@ def worker(spec: dict) -> dict:
     rot = [float(rotation_error_deg(np.asarray(result.T_world_root)[:3, :3], T_world_gt[1][:3, :3]))]
     trans = [float(np.linalg.norm(np.asarray(result.T_world_root)[:3, 3] - T_world_gt[1][:3, 3]))]
     total, step, sift, rounds, retraced, crops = [], [], [], [], 0, set()
-    prev = prev_motion_px = None
+    prev = prev_motion = None
     for k in range(2, seq.num_frames):
         images = frames(k)
         before = traces()
-        prev, prev_motion_px = state, tracker.last_motion_px
+        prev, prev_motion = state, (tracker.last_motion_px, tracker.last_box_motion)
         state, result, info = tracker.step(state, images)
         T = np.asarray(result.T_world_root)
         rot.append(float(rotation_error_deg(T[:3, :3], T_world_gt[k][:3, :3])))
@@ -277,7 +278,7 @@ def worker(spec: dict) -> dict:
         "rot_deg": float(np.mean(rot)), "trans_mm": float(np.mean(trans)), "max_rot_deg": float(np.max(rot)),
     })
     if spec["breakdown"] and prev is not None:
-        tracker.last_motion_px = prev_motion_px  # the crop margin of that frame: the same crop class and program
+        tracker.last_motion_px, tracker.last_box_motion = prev_motion  # that frame's windows: the same crop class and program
         out["stages"] = stage_breakdown(tracker, prev, frames(seq.num_frames - 1), spec["repeats"])
     return out
 

@@ -127,7 +127,7 @@ def _track(problem: Problem, start: int, stop: int, log_w: np.ndarray, tangents:
 
     def restart(k):
         state = tr.start(problem.frames(k), problem.T_world_gt[k])
-        tr.last_motion_px = 0.0
+        tr.record_motion(None, None)
         diff, static = eqx.partition(state, eqx.is_inexact_array)
         return state, diff, static, jax.tree.map(lambda a: jnp.zeros((P,) + a.shape, a.dtype), diff)
 
@@ -150,8 +150,7 @@ def _track(problem: Problem, start: int, stop: int, log_w: np.ndarray, tangents:
         secs = time.perf_counter() - t
         state = eqx.combine(diff, static)
         moved = projected_boxes(tr.mesh, tr.cameras, state.T_world_root, state.theta, tr.model)
-        if np.all(np.isfinite(moved)) and np.all(np.isfinite(before)):  # the crop margin follows the motion (Tracker.step)
-            tr.last_motion_px = float(np.max(np.abs(moved - before)))
+        tr.record_motion(before, moved)  # the next windows follow the motion (as in Tracker.step)
         out.append((k, np.asarray(T), np.asarray(dT) if tangents else None, int(status), secs))
         if reset:
             rot, trans = pose_errors((problem.T_cam0_world @ np.asarray(T, np.float64))[None], problem.gt[k][None])

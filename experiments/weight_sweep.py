@@ -162,7 +162,7 @@ def track_batch(problem: Problem, flow: np.ndarray, sift: np.ndarray, reset: boo
     B = len(flow)
     first = tr.start(problem.frames(0), problem.T_world_gt[0])
     states = _stack([first] * B)
-    motion = np.zeros(B)
+    motion = [None] * B  # each setting's last box motion ((C, 4) px; Tracker.last_box_motion)
     F = problem.num_frames
     rot, trans = np.zeros((B, F)), np.zeros((B, F))
     ok, resets = np.ones((B, F), bool), np.zeros((B, F), bool)
@@ -179,7 +179,7 @@ def track_batch(problem: Problem, flow: np.ndarray, sift: np.ndarray, reset: boo
         offsets = [None] * B
         for _ in range(2):
             for b in range(B):
-                tr.last_motion_px = float(motion[b])
+                tr.record_motion(None, None) if motion[b] is None else tr.record_motion(boxes[b] - motion[b], boxes[b])
                 off, _shape = tr.crop(poses[b], thetas[b], boxes[b])
                 offsets[b] = off if off is not None else (offsets[b] if offsets[b] is not None else np.zeros((tr.num_cameras, 2), np.int32))
         crop_shape = tr.crop_shape
@@ -203,13 +203,13 @@ def track_batch(problem: Problem, flow: np.ndarray, sift: np.ndarray, reset: boo
         rot[:, k], trans[:, k] = problem.errors(T_new, k)
         ok[:, k] = success_mask(rot[:, k], trans[:, k])
         moved = [projected_boxes(tr.mesh, tr.cameras, res.T_world_root[b], res.theta[b], tr.model) for b in range(B)]
-        motion = np.array([float(np.max(np.abs(np.asarray(m) - np.asarray(o)))) if np.all(np.isfinite(m)) and np.all(np.isfinite(o))
-                           else 0.0 for m, o in zip(moved, boxes, strict=True)])
+        motion = [np.asarray(m) - np.asarray(o) if np.all(np.isfinite(m)) and np.all(np.isfinite(o)) else None
+                  for m, o in zip(moved, boxes, strict=True)]
         states = new
         if reset and not ok[:, k].all():
             restart = tr.start(frames, problem.T_world_gt[k])
             states = _replace_rows(~ok[:, k], restart, states)
-            motion = np.where(ok[:, k], motion, 0.0)
+            motion = [m if ok[b, k] else None for b, m in enumerate(motion)]
             resets[:, k] = ~ok[:, k]
         host_s.append(host + (time.perf_counter() - t1 - step_s[-1]))
         if log is not None:

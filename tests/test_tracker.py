@@ -339,6 +339,42 @@ def test_working_resolution_at_scale_one_gives_the_native_pose(sequence):
         assert np.linalg.norm(native[:3, 3] - working[:3, 3]) < 0.5
 
 
+def test_the_windows_follow_the_last_motion_and_hold_the_object_at_t_and_where_it_is_carried(sequence):
+    """After a 54 px step of a 142 px wide box (the noisy moving camera at 640x480), the next step's windows hold the
+    box at t and the box moved on by that motion (constant velocity) with the fixed margin and half the motion around
+    them, instead of 1.5x the motion on every side: a smaller scale (more working pixels on the object) for the same
+    coverage. Without a last motion the two rules give the same windows. Host arithmetic only (no compile)."""
+    camera = jt.make_camera(np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]]), 640, 480)
+    tracker = Tracker(sequence["mesh"], camera, config=TrackerConfig(cues=("lines", "flow"), working_shape=(96, 128)))
+    box = np.array([[200.0, 150.0, 342.0, 250.0]])  # (x0, y0, x1, y1) at t
+    motion = np.array([[54.0, 6.0, 54.0, 6.0]])  # the last step's motion of each side
+
+    def window(follows: bool, last_motion):
+        tracker.crop_follows_motion = follows
+        tracker.record_motion(None, None) if last_motion is None else tracker.record_motion(box, box + last_motion)
+        offsets, shape, scales = tracker.windows(None, None, box)
+        assert shape == (96, 128)
+        (y0, x0), s = offsets[0], float(scales[0])
+        return np.array([x0, y0, x0 + s * shape[1] - 1, y0 + s * shape[0] - 1]), s
+
+    def inside(b, w):
+        return b[0] >= w[0] - 0.5 and b[1] >= w[1] - 0.5 and b[2] <= w[2] + 0.5 and b[3] <= w[3] + 0.5
+
+    still = [window(f, None) for f in (True, False)]
+    assert np.allclose(still[0][0], still[1][0]) and still[0][1] == still[1][1]
+    centred, s_centred = window(False, motion)
+    follows, s_follows = window(True, motion)
+    print(f"scale {s_centred:.2f} (box at t + 1.5x motion) -> {s_follows:.2f} (follows the motion); windows "
+          f"{np.round(centred)} -> {np.round(follows)}")
+    carried = box[0] + motion[0]
+    for w in (centred, follows):
+        assert inside(box[0], w) and inside(carried, w)
+    assert s_follows < 0.8 * s_centred  # 2.34 (299 px / 128) against 3.24 (311 px / 96)
+    assert inside(carried + np.array([-27.0, -27.0, 27.0, 27.0]), follows)  # half the motion more on every side
+    shift = (follows[0] + follows[2]) / 2 - (box[0][0] + box[0][2]) / 2
+    assert abs((centred[0] + centred[2]) / 2 - (box[0][0] + box[0][2]) / 2) < 1.0 and shift > 0.4 * motion[0][0], shift
+
+
 def test_working_resolution_flow_reaches_a_large_motion():
     """The flow pyramid at the working resolution reaches the motion of a large frame step. At 96x128 a coarsest
     level of 16 px left 3 levels, and a 12 px shift (the frame-rate experiment's 20 px / 12° step at S = 4, seen at

@@ -265,6 +265,9 @@ class Tracker:
             ($JAXTRACK_OVERLAP_HOST=0). Only where that program dispatches asynchronously (a kept program,
             `jaxtrack.enable_compilation_cache`). The poses are the same either way.
         warm_up_recovery: compile the recovery search in a background thread after the first frame.
+        crop_follows_motion: the next step's windows hold the box at t and the box moved on by the last step's motion
+            (plus the margin and half that motion) instead of the box at t plus 1.5x the motion on every side
+            (`_crop_boxes`); True by default, $JAXTRACK_CROP_FOLLOWS_MOTION=0 sets it False.
     """
 
     def __init__(self, mesh: Mesh, cameras: Camera, model: KinematicModel | None = None, config: TrackerConfig | None = None,
@@ -290,7 +293,8 @@ class Tracker:
         self.atlas = None
         self.replans = 0
         self._default_params: dict = {}
-        self.last_motion_px = 0.0
+        self.last_motion_px = 0.0  # largest image motion of the box's sides in the last step (px)
+        self.last_box_motion: np.ndarray | None = None  # (C, 4) that step's motion of each box side (x0, y0, x1, y1; px)
         self.crop_shape: tuple[int, int] | None = None  # kept while the object fits (one compile per class)
         self.frame_dtype = np.dtype(self.dtype)  # the state's image dtype: uint8 after `start` on 8-bit frames
         self.host_cache: dict = {}  # per-modality host state between frames (SIFT: the keypoints of frame t)
@@ -306,6 +310,9 @@ class Tracker:
         # $JAXTRACK_RECOVERY_WARMUP=0 compiles it when first needed instead (the test suite: most of its trackers
         # never lose the object, and each compile costs a few seconds of its two cores).
         self.warm_up_recovery = os.environ.get("JAXTRACK_RECOVERY_WARMUP", "1") != "0"
+        # Windows around where the last step's motion carries the object (`_crop_boxes`);
+        # $JAXTRACK_CROP_FOLLOWS_MOTION=0: around the box at t with 1.5x the motion on every side (the old rule).
+        self.crop_follows_motion = os.environ.get("JAXTRACK_CROP_FOLLOWS_MOTION", "1") != "0"
         # With a modality that reads host inputs (SIFT), dispatch `start_frame` (crops, render, flow) before making
         # them, so the device works while the host detects ($JAXTRACK_OVERLAP_HOST=0: one program, host first).
         self.overlap_host: bool | None = False if os.environ.get("JAXTRACK_OVERLAP_HOST", "1") == "0" else None
@@ -393,8 +400,37 @@ class Tracker:
         self.replans += 1
 
     def _crop_margin(self) -> int:
-        """Pixels of context around the object's box: the fixed margin plus 1.5x the last frame's motion."""
+        """Pixels of context around the object's box: the fixed margin plus 1.5x the last frame's motion (the window
+        centred on the box at t; `_crop_boxes` centres it on the motion instead and needs less)."""
         return self.margin + int(np.ceil(1.5 * self.last_motion_px))
+
+    def _crop_boxes(self, boxes: np.ndarray) -> tuple[np.ndarray, int]:
+        """(C, 4) boxes the windows of the next step must hold and the margin around them.
+
+        With `crop_follows_motion` (and a last motion): the union of the box at t and the box moved on by the last
+        step's motion of each side (constant velocity: where the object will be at t+1), plus the fixed margin and
+        0.5x that motion for a change of speed. Else the box at t plus `_crop_margin` (1.5x the motion on every
+        side). After a 54 px step the window holds the object with 54 + 2 x 51 px along the motion and 2 x 51 px
+        across it instead of 2 x 105 px both ways, so the fixed working resolution keeps more of the object's pixels
+        (the noisy moving camera at 640x480: issue 25)."""
+        motion = self.last_box_motion
+        if not self.crop_follows_motion or motion is None or motion.shape != boxes.shape or not np.all(np.isfinite(motion)):
+            return boxes, self._crop_margin()
+        moved = boxes + motion
+        union = np.concatenate([np.minimum(boxes[:, :2], moved[:, :2]), np.maximum(boxes[:, 2:], moved[:, 2:])], axis=1)
+        return union, self.margin + int(np.ceil(0.5 * float(np.max(np.abs(motion)))))
+
+    def record_motion(self, boxes_before, boxes_after) -> None:
+        """Remember one step's image motion from the object's (C, 4) projected boxes before and after it (px; None:
+        no motion, as after `start`): the next step's windows follow it (`_crop_boxes`). Skipped where a box is not
+        finite (the object behind a camera)."""
+        if boxes_before is None or boxes_after is None:
+            self.last_motion_px, self.last_box_motion = 0.0, None
+            return
+        before, after = np.asarray(boxes_before, np.float64), np.asarray(boxes_after, np.float64)
+        if np.all(np.isfinite(before)) and np.all(np.isfinite(after)):
+            self.last_box_motion = after - before
+            self.last_motion_px = float(np.max(np.abs(self.last_box_motion)))
 
     def _needed_scales(self, boxes: np.ndarray, margin: int) -> np.ndarray:
         """(C,) full-frame pixels per working pixel that fit each box plus `margin` in the working shape (unclamped)."""
@@ -413,7 +449,7 @@ class Tracker:
             return 1.0
         H, W = self.cameras.height, self.cameras.width
         h, w = self.config.working_shape
-        need = self._needed_scales(boxes, self._crop_margin())
+        need = self._needed_scales(*self._crop_boxes(boxes))
         fit = min(H / h, W / w)
         below = np.maximum(1.0 / need, 1.0)  # scale 1: room left in the window
         above = np.where(2.0 * np.maximum(need, 1.0) > fit, 2.0, 1.0)  # near the largest scale
@@ -430,9 +466,10 @@ class Tracker:
         """(offsets (C, 2), crop shape (h, w), scales (C,) or None) of the crops around the object at (T, Θ).
 
         Native resolution (`TrackerConfig.working_shape` None): integer offsets, a size class, scales None.
-        Working resolution: each camera's window covers its box plus the margin at the fixed shape,
-        scale s = full-frame pixels per crop pixel (at least 1 while the window fits in the frame), centred
-        on the box and kept inside the frame. (None, None, None) when the object is behind a camera.
+        Working resolution: each camera's window covers the boxes of `_crop_boxes` (the box at t and where the
+        last step's motion carries it) plus the margin at the fixed shape, scale s = full-frame pixels per crop
+        pixel (at least 1 while the window fits in the frame), centred on those boxes and kept inside the frame.
+        Native crops hold the same boxes and margin. (None, None, None) when the object is behind a camera.
         """
         boxes = projected_boxes(self.mesh, self.cameras, T, theta, self.model) if boxes is None else boxes.copy()
         if not np.all(np.isfinite(boxes)):
@@ -444,7 +481,9 @@ class Tracker:
         # Keep what is on screen; a box entirely off screen still gets a crop at the border.
         boxes[:, [0, 2]] = np.clip(boxes[:, [0, 2]], 0, W - 1)
         boxes[:, [1, 3]] = np.clip(boxes[:, [1, 3]], 0, H - 1)
-        margin = self._crop_margin()
+        boxes, margin = self._crop_boxes(boxes)  # the box carried on by the motion may leave the frame: clip again
+        boxes[:, [0, 2]] = np.clip(boxes[:, [0, 2]], 0, W - 1)
+        boxes[:, [1, 3]] = np.clip(boxes[:, [1, 3]], 0, H - 1)
         if self.config.working_shape is not None:
             return self._scaled_windows(boxes, margin)
         # A new size class has 25% headroom and is kept while the object fits: each class is one
@@ -497,7 +536,7 @@ class Tracker:
         on_screen = (boxes[:, 2] >= 0) & (boxes[:, 0] < W) & (boxes[:, 3] >= 0) & (boxes[:, 1] < H)
         if not np.any(on_screen):
             raise ValueError("the initial pose puts the object outside every camera's image (T_world_root)")
-        self.last_motion_px = 0.0
+        self.record_motion(None, None)
         self.last_good_pose, self.recoveries = T, 0
         if self.plan is None:
             self._replan(T, theta)
@@ -614,9 +653,7 @@ class Tracker:
                 and self.config.recovery.hypotheses):
             self._warm_up_recovery(new_state, frames_j, params)
         timings["total_s"] = time.perf_counter() - start
-        moved = self._boxes_at(result.T_world_root, result.theta)
-        if np.all(np.isfinite(moved)) and np.all(np.isfinite(before)):
-            self.last_motion_px = float(np.max(np.abs(moved - before)))
+        self.record_motion(before, self._boxes_at(result.T_world_root, result.theta))
         return new_state, result, {"timings": timings, "offsets": offsets, "crop_shape": crop_shape, "scales": scales,
                                    "recovery": recovery}
 
