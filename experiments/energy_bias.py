@@ -105,7 +105,8 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="smoke run: the teapot, frames 0 and 1, the lines")
     ap.add_argument("--seq-dir", default=None, help="folder for the rendered sequences (and reuse them)")
     ap.add_argument("--out", default=None,
-                    help="markdown output, JSON beside it (default experiments/results/energy_bias.md; --quick: none)")
+                    help="markdown output, JSON beside it (default experiments/results/energy_bias.md, with --presets "
+                         "energy_bias_<presets>.md; --quick: none)")
     args = ap.parse_args(argv)
     if args.stride < 1:
         raise SystemExit("energy_bias: --stride must be ≥ 1")
@@ -138,7 +139,9 @@ def main(argv=None):
             shutil.rmtree(seq_dir, ignore_errors=True)
     text = report(command, (clock.load_start, os.getloadavg()), clock.elapsed_s(), runs, sizes, 1 if args.quick else args.stride)
     print(text)
-    out = output_path(args.out, RESULTS / "energy_bias.md", args.quick)
+    # Other sequences than the turntable's go to their own file by default: energy_bias.md stays the turntable's.
+    default = "energy_bias.md" if not args.presets else f"energy_bias_{args.presets.replace(',', '_').replace('-', '_')}.md"
+    out = output_path(args.out, RESULTS / default, args.quick)
     save_text(out, text)
     if out is not None:
         pathlib.Path(out).with_suffix(".json").write_text(json.dumps({f"{label} | {cues}": rows for (label, cues), rows in runs.items()}))
