@@ -110,15 +110,15 @@ def stage_breakdown(tracker, state, frames_np, repeats: int) -> dict:
     out = {"crop": list(crop_shape), "ms": {}, "calls": {}}
 
     # The whole frame as the tracker runs it (host crop + host inputs + the compiled step), same inputs.
-    motion_px, box_motion = tracker.last_motion_px, tracker.last_box_motion
+    box_motion = tracker.last_box_motion
 
     def whole():
         # keep the windows (and so the compiled program) fixed
-        tracker.last_motion_px, tracker.last_box_motion = motion_px, box_motion
+        tracker.last_box_motion = box_motion
         return tracker.step(state, frames)[1].T_world_root
 
     out["whole_ms"] = _median_ms(whole, repeats)
-    tracker.last_motion_px, tracker.last_box_motion = motion_px, box_motion
+    tracker.last_box_motion = box_motion
     _, result, _ = tracker.step(state, frames)
     rounds = int(result.iterations)
     out["rounds"] = rounds
@@ -255,7 +255,7 @@ def worker(spec: dict) -> dict:
     for k in range(2, seq.num_frames):
         images = frames(k)
         before = traces()
-        prev, prev_motion = state, (tracker.last_motion_px, tracker.last_box_motion)
+        prev, prev_motion = state, tracker.last_box_motion
         state, result, info = tracker.step(state, images)
         T = np.asarray(result.T_world_root)
         rot.append(float(rotation_error_deg(T[:3, :3], T_world_gt[k][:3, :3])))
@@ -278,7 +278,7 @@ def worker(spec: dict) -> dict:
         "rot_deg": float(np.mean(rot)), "trans_mm": float(np.mean(trans)), "max_rot_deg": float(np.max(rot)),
     })
     if spec["breakdown"] and prev is not None:
-        tracker.last_motion_px, tracker.last_box_motion = prev_motion  # that frame's windows: the same crop class and program
+        tracker.last_box_motion = prev_motion  # that frame's windows: the same crop class and program
         out["stages"] = stage_breakdown(tracker, prev, frames(seq.num_frames - 1), spec["repeats"])
     return out
 

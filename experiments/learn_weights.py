@@ -126,8 +126,7 @@ def _track(problem: Problem, start: int, stop: int, log_w: np.ndarray, tangents:
     lw = jnp.asarray(log_w, tr.dtype)
 
     def restart(k):
-        state = tr.start(problem.frames(k), problem.T_world_gt[k])
-        tr.record_motion(None, None)
+        state = tr.start(problem.frames(k), problem.T_world_gt[k])  # forgets the last motion (Tracker.record_motion)
         diff, static = eqx.partition(state, eqx.is_inexact_array)
         return state, diff, static, jax.tree.map(lambda a: jnp.zeros((P,) + a.shape, a.dtype), diff)
 

@@ -179,7 +179,7 @@ def track_batch(problem: Problem, flow: np.ndarray, sift: np.ndarray, reset: boo
         offsets = [None] * B
         for _ in range(2):
             for b in range(B):
-                tr.record_motion(None, None) if motion[b] is None else tr.record_motion(boxes[b] - motion[b], boxes[b])
+                tr.last_box_motion = motion[b]
                 off, _shape = tr.crop(poses[b], thetas[b], boxes[b])
                 offsets[b] = off if off is not None else (offsets[b] if offsets[b] is not None else np.zeros((tr.num_cameras, 2), np.int32))
         crop_shape = tr.crop_shape

@@ -440,7 +440,7 @@ def test_a_pose_jump_is_flagged_in_the_frame_it_happens_and_lost_where_the_step_
     try:
         outcomes = {}
         for degrees in (40.0, 50.0):
-            tracker.last_motion_px, tracker.last_box_motion = saved["last_motion_px"], saved["last_box_motion"]
+            tracker.last_box_motion = saved["last_box_motion"]
             _, result, _ = tracker.step(_turned(state, degrees), sequence["images"][2], recover=False)  # its own status
             error = float(rotation_error_deg(np.asarray(result.T_world_root)[:3, :3], sequence["T"][2][:3, :3]))
             evidence = dict(zip(jt.track._step.LOSS_EVIDENCE, np.asarray(result.loss_evidence).round(3)))

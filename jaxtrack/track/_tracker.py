@@ -8,8 +8,9 @@ stream of frames into poses:
     for frames in stream:
         state, result, info = tracker.step(state, frames)    # result.status, result.confidence
 
-Between frames, on the host: the crop around the object (one static size class for all cameras,
-chosen from the projected model at t with a margin that grows with the last motion), SIFT detection
+Between frames, on the host: the crop around the object (one static size class for all cameras, or the fixed
+working resolution, holding the projected model at t and where the last step's motion carries it, with a margin
+that grows with that motion), SIFT detection
 and matching (OpenCV, one thread per camera and core), and a re-plan of the rasteriser when a render overflowed
 (the frame is then redone). Everything else is `track_step`, one compiled program per configuration,
 crop size class and raster plan; with a modality that reads host inputs (SIFT) its first part, `start_frame`
@@ -293,8 +294,7 @@ class Tracker:
         self.atlas = None
         self.replans = 0
         self._default_params: dict = {}
-        self.last_motion_px = 0.0  # largest image motion of the box's sides in the last step (px)
-        self.last_box_motion: np.ndarray | None = None  # (C, 4) that step's motion of each box side (x0, y0, x1, y1; px)
+        self.last_box_motion: np.ndarray | None = None  # (C, 4) the last step's motion of each box side (x0, y0, x1, y1; px)
         self.crop_shape: tuple[int, int] | None = None  # kept while the object fits (one compile per class)
         self.frame_dtype = np.dtype(self.dtype)  # the state's image dtype: uint8 after `start` on 8-bit frames
         self.host_cache: dict = {}  # per-modality host state between frames (SIFT: the keypoints of frame t)
@@ -399,6 +399,11 @@ class Tracker:
                 self.crop_plan = plan
         self.replans += 1
 
+    @property
+    def last_motion_px(self) -> float:
+        """Largest image motion (px) of a side of the object's box in the last step (0 without one)."""
+        return 0.0 if self.last_box_motion is None else float(np.max(np.abs(self.last_box_motion)))
+
     def _crop_margin(self) -> int:
         """Pixels of context around the object's box: the fixed margin plus 1.5x the last frame's motion (the window
         centred on the box at t; `_crop_boxes` centres it on the motion instead and needs less)."""
@@ -409,7 +414,7 @@ class Tracker:
 
         With `crop_follows_motion` (and a last motion): the union of the box at t and the box moved on by the last
         step's motion of each side (constant velocity: where the object will be at t+1), plus the fixed margin and
-        0.5x that motion for a change of speed. Else the box at t plus `_crop_margin` (1.5x the motion on every
+        half the largest motion of any side in any camera, for a change of speed. Else the box at t plus `_crop_margin` (1.5x the motion on every
         side). After a 54 px step the window holds the object with 54 + 2 x 51 px along the motion and 2 x 51 px
         across it instead of 2 x 105 px both ways, so the fixed working resolution keeps more of the object's pixels
         (the noisy moving camera at 640x480: issue 25)."""
@@ -422,15 +427,14 @@ class Tracker:
 
     def record_motion(self, boxes_before, boxes_after) -> None:
         """Remember one step's image motion from the object's (C, 4) projected boxes before and after it (px; None:
-        no motion, as after `start`): the next step's windows follow it (`_crop_boxes`). Skipped where a box is not
-        finite (the object behind a camera)."""
+        no motion, as after `start`): the next step's windows follow it (`_crop_boxes`). Where a box is not finite
+        (the object behind a camera) the previous motion is kept."""
         if boxes_before is None or boxes_after is None:
-            self.last_motion_px, self.last_box_motion = 0.0, None
+            self.last_box_motion = None
             return
         before, after = np.asarray(boxes_before, np.float64), np.asarray(boxes_after, np.float64)
         if np.all(np.isfinite(before)) and np.all(np.isfinite(after)):
             self.last_box_motion = after - before
-            self.last_motion_px = float(np.max(np.abs(self.last_box_motion)))
 
     def _needed_scales(self, boxes: np.ndarray, margin: int) -> np.ndarray:
         """(C,) full-frame pixels per working pixel that fit each box plus `margin` in the working shape (unclamped)."""
