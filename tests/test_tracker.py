@@ -343,7 +343,8 @@ def test_the_windows_follow_the_last_motion_and_hold_the_object_at_t_and_where_i
     """After a 54 px step of a 142 px wide box (the noisy moving camera at 640x480), the next step's windows hold the
     box at t and the box moved on by that motion (constant velocity) with the fixed margin and half the motion around
     them, instead of 1.5x the motion on every side: a smaller scale (more working pixels on the object) for the same
-    coverage. Without a last motion the two rules give the same windows. Host arithmetic only (no compile)."""
+    coverage. Without a last motion the two rules give the same windows, and `follow_motion=False` gives them while
+    the motion is kept. Host arithmetic only (no compile)."""
     camera = jt.make_camera(np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]]), 640, 480)
     tracker = Tracker(sequence["mesh"], camera, config=TrackerConfig(cues=("lines", "flow"), working_shape=(96, 128)))
     box = np.array([[200.0, 150.0, 342.0, 250.0]])  # (x0, y0, x1, y1) at t
@@ -373,6 +374,11 @@ def test_the_windows_follow_the_last_motion_and_hold_the_object_at_t_and_where_i
     assert inside(carried + np.array([-27.0, -27.0, 27.0, 27.0]), follows)  # half the motion more on every side
     shift = (follows[0] + follows[2]) / 2 - (box[0][0] + box[0][2]) / 2
     assert abs((centred[0] + centred[2]) / 2 - (box[0][0] + box[0][2]) / 2) < 1.0 and shift > 0.4 * motion[0][0], shift
+    # A step without motion (the recovery's restart on frames t+1 → t+1) asks for the box alone, the motion kept
+    tracker.crop_follows_motion = True
+    (y0, x0), s_alone = tracker.windows(None, None, box, follow_motion=False)[0][0], tracker.windows(None, None, box, follow_motion=False)[2][0]
+    np.testing.assert_array_equal(tracker.last_box_motion, motion)
+    assert np.allclose([x0, y0], still[0][0][:2]) and float(s_alone) == still[0][1], ((x0, y0, s_alone), still[0])
 
 
 def test_working_resolution_flow_reaches_a_large_motion():
@@ -428,7 +434,8 @@ def _turned(state, degrees):
 def test_a_pose_jump_is_flagged_in_the_frame_it_happens_and_lost_where_the_step_keeps_it(sequence, lines_sift):
     """Issue 24: a pose teleported by a jump the object did not make is flagged in that frame, where the contour
     agreement alone (the confidence up to now) still read 0.9, with a confidence well below the tracked frame's; a
-    jump the step cannot pull back (50°: 42.6° left) is LOST. Teleported 40°, the step pulls it back to 10.4° and
+    jump the step cannot pull back (50°: 42.6° left) is LOST, and its jump is not taken for the object's motion by
+    the next windows (`TRACKED_STATUSES`). Teleported 40°, the step pulls it back to 10.4° and
     the frame reads UNCERTAIN at confidence 0.333 (LOST is below 0.25): with the crop windows that follow the motion
     (01fe831); with the old windows 11.9° and LOST at 0.227, and 11.8° at 0.215 when the Cauchy loss came (a2beddf).
     A 10-12° error whose contour agrees sits at the LOST bound (probe in this suite's settings: 40° then 50°, the
@@ -438,7 +445,7 @@ def test_a_pose_jump_is_flagged_in_the_frame_it_happens_and_lost_where_the_step_
     assert tracked_error < 5.0 and int(tracked.status) != jt.Status.LOST, (tracked_error, int(tracked.status))
     saved = dict(vars(tracker))  # the group's other tests use this tracker: its motion memory is put back after
     try:
-        outcomes = {}
+        outcomes, motion_after = {}, {}
         for degrees in (40.0, 50.0):
             tracker.last_box_motion = saved["last_box_motion"]
             _, result, _ = tracker.step(_turned(state, degrees), sequence["images"][2], recover=False)  # its own status
@@ -447,6 +454,7 @@ def test_a_pose_jump_is_flagged_in_the_frame_it_happens_and_lost_where_the_step_
             print(f"{degrees:.0f}° jump: error {error:.1f}°, {jt.Status(int(result.status)).name}, confidence "
                   f"{float(result.confidence):.3f}, evidence {evidence}")
             outcomes[degrees] = (error, int(result.status), float(result.confidence))
+            motion_after[degrees] = tracker.last_box_motion
     finally:
         vars(tracker).clear()
         vars(tracker).update(saved)
@@ -455,6 +463,10 @@ def test_a_pose_jump_is_flagged_in_the_frame_it_happens_and_lost_where_the_step_
         assert status in (jt.Status.LOST, jt.Status.UNCERTAIN), (degrees, jt.Status(status).name)
         assert float(tracked.confidence) > confidence + 0.2, (float(tracked.confidence), confidence)
     assert outcomes[50.0][1] == jt.Status.LOST, jt.Status(outcomes[50.0][1]).name
+    # The next windows follow the motion of a frame that tracked: the UNCERTAIN frame's step is recorded, the LOST
+    # frame's jump is not (the motion before it is kept).
+    assert not np.allclose(motion_after[40.0], saved["last_box_motion"]), motion_after[40.0]
+    np.testing.assert_array_equal(motion_after[50.0], saved["last_box_motion"])
 
 
 @pytest.mark.xdist_group("lines_sift")

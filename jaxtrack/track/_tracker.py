@@ -9,8 +9,8 @@ stream of frames into poses:
         state, result, info = tracker.step(state, frames)    # result.status, result.confidence
 
 Between frames, on the host: the crop around the object (one static size class for all cameras, or the fixed
-working resolution, holding the projected model at t and where the last step's motion carries it, with a margin
-that grows with that motion), SIFT detection
+working resolution, holding the projected model at t and where the motion of the last frame that tracked carries it,
+with a margin that grows with that motion), SIFT detection
 and matching (OpenCV, one thread per camera and core), and a re-plan of the rasteriser when a render overflowed
 (the frame is then redone). Everything else is `track_step`, one compiled program per configuration,
 crop size class and raster plan; with a modality that reads host inputs (SIFT) its first part, `start_frame`
@@ -71,6 +71,11 @@ from ._step import (
 _track_step_jit = persistent_jit(track_step)
 _start_frame_jit = persistent_jit(start_frame)
 _recover_pose_jit = persistent_jit(recover_pose)
+
+# Statuses whose step is the object's motion, the one the next windows follow (`Tracker.record_motion`): a LOST
+# frame's pose jumped where the object is not, and a RECOVERED frame's jump is the search's, not a velocity; after
+# them the windows follow the last motion of a frame that tracked.
+TRACKED_STATUSES = (int(Status.OK), int(Status.UNCERTAIN))
 
 # The flow's structure factor counts no structure near the limbs of the render (`TrackerParams.flow_limb_slope`,
 # `jaxtrack.cues.flow.limb_pixels`): a one-pixel depth step above tan 80°. Rigid objects only (chains: not measured,
@@ -409,7 +414,7 @@ class Tracker:
         centred on the box at t; `_crop_boxes` centres it on the motion instead and needs less)."""
         return self.margin + int(np.ceil(1.5 * self.last_motion_px))
 
-    def _crop_boxes(self, boxes: np.ndarray) -> tuple[np.ndarray, int]:
+    def _crop_boxes(self, boxes: np.ndarray, follow_motion: bool = True) -> tuple[np.ndarray, int]:
         """(C, 4) boxes the windows of the next step must hold and the margin around them.
 
         With `crop_follows_motion` (and a last motion): the union of the box at t and the box moved on by the last
@@ -417,7 +422,10 @@ class Tracker:
         half the largest motion of any side in any camera, for a change of speed. Else the box at t plus `_crop_margin` (1.5x the motion on every
         side). After a 54 px step the window holds the object with 54 + 2 x 51 px along the motion and 2 x 51 px
         across it instead of 2 x 105 px both ways, so the fixed working resolution keeps more of the object's pixels
-        (the noisy moving camera at 640x480: issue 25)."""
+        (the noisy moving camera at 640x480: issue 25). `follow_motion=False` (a step between a frame and itself): the
+        box at t and the fixed margin, whatever the last motion."""
+        if not follow_motion:  # a step without motion: the box and the fixed margin
+            return boxes, self.margin
         motion = self.last_box_motion
         if not self.crop_follows_motion or motion is None or motion.shape != boxes.shape or not np.all(np.isfinite(motion)):
             return boxes, self._crop_margin()
@@ -428,7 +436,8 @@ class Tracker:
     def record_motion(self, boxes_before, boxes_after) -> None:
         """Remember one step's image motion from the object's (C, 4) projected boxes before and after it (px; None:
         no motion, as after `start`): the next step's windows follow it (`_crop_boxes`). Where a box is not finite
-        (the object behind a camera) the previous motion is kept."""
+        (the object behind a camera) the previous motion is kept. `step` records only frames whose status is in
+        `TRACKED_STATUSES` (after a LOST or RECOVERED frame the windows follow the motion of the last frame that tracked)."""
         if boxes_before is None or boxes_after is None:
             self.last_box_motion = None
             return
@@ -466,12 +475,12 @@ class Tracker:
         offsets, shape, _ = self.windows(T, theta, boxes)
         return offsets, shape
 
-    def windows(self, T, theta, boxes: np.ndarray | None = None):
+    def windows(self, T, theta, boxes: np.ndarray | None = None, follow_motion: bool = True):
         """(offsets (C, 2), crop shape (h, w), scales (C,) or None) of the crops around the object at (T, Θ).
 
         Native resolution (`TrackerConfig.working_shape` None): integer offsets, a size class, scales None.
         Working resolution: each camera's window covers the boxes of `_crop_boxes` (the box at t and where the
-        last step's motion carries it) plus the margin at the fixed shape, scale s = full-frame pixels per crop
+        last step's motion carries it; `follow_motion=False`: the box alone, for a step without motion) plus the margin at the fixed shape, scale s = full-frame pixels per crop
         pixel (at least 1 while the window fits in the frame), centred on those boxes and kept inside the frame.
         Native crops hold the same boxes and margin. (None, None, None) when the object is behind a camera.
         """
@@ -485,7 +494,7 @@ class Tracker:
         # Keep what is on screen; a box entirely off screen still gets a crop at the border.
         boxes[:, [0, 2]] = np.clip(boxes[:, [0, 2]], 0, W - 1)
         boxes[:, [1, 3]] = np.clip(boxes[:, [1, 3]], 0, H - 1)
-        boxes, margin = self._crop_boxes(boxes)  # the box carried on by the motion may leave the frame: clip again
+        boxes, margin = self._crop_boxes(boxes, follow_motion)  # the box carried on by the motion may leave the frame: clip again
         boxes[:, [0, 2]] = np.clip(boxes[:, [0, 2]], 0, W - 1)
         boxes[:, [1, 3]] = np.clip(boxes[:, [1, 3]], 0, H - 1)
         if self.config.working_shape is not None:
@@ -657,7 +666,8 @@ class Tracker:
                 and self.config.recovery.hypotheses):
             self._warm_up_recovery(new_state, frames_j, params)
         timings["total_s"] = time.perf_counter() - start
-        self.record_motion(before, self._boxes_at(result.T_world_root, result.theta))
+        if int(result.status) in TRACKED_STATUSES:  # a LOST frame's jump, or a search's, is not the object's motion
+            self.record_motion(before, self._boxes_at(result.T_world_root, result.theta))
         return new_state, result, {"timings": timings, "offsets": offsets, "crop_shape": crop_shape, "scales": scales,
                                    "recovery": recovery}
 
@@ -856,7 +866,9 @@ class Tracker:
         boxes = projected_boxes(self.mesh, self.cameras, T_found, theta, self.model)
         H, W = self.cameras.height, self.cameras.width
         on_screen = np.isfinite(boxes).all(1) & (boxes[:, 2] >= 0) & (boxes[:, 0] < W) & (boxes[:, 3] >= 0) & (boxes[:, 1] < H)
-        offsets, crop_shape, scales = self.windows(T_found, theta, boxes) if on_screen.any() else (None, None, None)
+        # frames t+1 → t+1: no motion between them, so the windows hold the found box without the last step's motion
+        offsets, crop_shape, scales = (self.windows(T_found, theta, boxes, follow_motion=False) if on_screen.any()
+                                       else (None, None, None))
         if offsets is None:
             info["windows"] = self.windows(lost.T_world_root, theta)
             return frozen, lost, info
