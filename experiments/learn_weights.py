@@ -118,7 +118,7 @@ def _track(problem: Problem, start: int, stop: int, log_w: np.ndarray, tangents:
     import jax.numpy as jnp
 
     from jaxtrack.cues.levelset import projected_boxes
-    from jaxtrack.track import TRACKED_STATUSES, default_params, pose_errors, success_mask
+    from jaxtrack.track import default_params, pose_errors, success_mask
 
     tr = problem.tracker
     program = jvp_program()
@@ -149,8 +149,7 @@ def _track(problem: Problem, start: int, stop: int, log_w: np.ndarray, tangents:
         secs = time.perf_counter() - t
         state = eqx.combine(diff, static)
         moved = projected_boxes(tr.mesh, tr.cameras, state.T_world_root, state.theta, tr.model)
-        if int(status) in TRACKED_STATUSES:  # the next windows follow the motion of a frame that tracked (Tracker.step)
-            tr.record_motion(before, moved)
+        tr.record_motion(before, moved)  # the next windows follow the motion (as in Tracker.step)
         out.append((k, np.asarray(T), np.asarray(dT) if tangents else None, int(status), secs))
         if reset:
             rot, trans = pose_errors((problem.T_cam0_world @ np.asarray(T, np.float64))[None], problem.gt[k][None])

@@ -156,7 +156,7 @@ def track_batch(problem: Problem, flow: np.ndarray, sift: np.ndarray, reset: boo
 
     from jaxtrack import Status
     from jaxtrack.cues.levelset import projected_boxes
-    from jaxtrack.track import TRACKED_STATUSES, default_params, success_mask, track_step
+    from jaxtrack.track import default_params, success_mask, track_step
 
     tr = problem.tracker
     B = len(flow)
@@ -203,10 +203,8 @@ def track_batch(problem: Problem, flow: np.ndarray, sift: np.ndarray, reset: boo
         rot[:, k], trans[:, k] = problem.errors(T_new, k)
         ok[:, k] = success_mask(rot[:, k], trans[:, k])
         moved = [projected_boxes(tr.mesh, tr.cameras, res.T_world_root[b], res.theta[b], tr.model) for b in range(B)]
-        statuses = np.asarray(res.status)  # as Tracker.step: the motion of a frame that tracked, else the one before
-        motion = [np.asarray(m) - np.asarray(o) if (np.all(np.isfinite(m)) and np.all(np.isfinite(o))
-                                                    and int(statuses[b]) in TRACKED_STATUSES) else motion[b]
-                  for b, (m, o) in enumerate(zip(moved, boxes, strict=True))]
+        motion = [np.asarray(m) - np.asarray(o) if np.all(np.isfinite(m)) and np.all(np.isfinite(o)) else None
+                  for m, o in zip(moved, boxes, strict=True)]
         states = new
         if reset and not ok[:, k].all():
             restart = tr.start(frames, problem.T_world_gt[k])

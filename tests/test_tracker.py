@@ -434,8 +434,7 @@ def _turned(state, degrees):
 def test_a_pose_jump_is_flagged_in_the_frame_it_happens_and_lost_where_the_step_keeps_it(sequence, lines_sift):
     """Issue 24: a pose teleported by a jump the object did not make is flagged in that frame, where the contour
     agreement alone (the confidence up to now) still read 0.9, with a confidence well below the tracked frame's; a
-    jump the step cannot pull back (50°: 42.6° left) is LOST, and its jump is not taken for the object's motion by
-    the next windows (`TRACKED_STATUSES`). Teleported 40°, the step pulls it back to 10.4° and
+    jump the step cannot pull back (50°: 42.6° left) is LOST. Teleported 40°, the step pulls it back to 10.4° and
     the frame reads UNCERTAIN at confidence 0.333 (LOST is below 0.25): with the crop windows that follow the motion
     (01fe831); with the old windows 11.9° and LOST at 0.227, and 11.8° at 0.215 when the Cauchy loss came (a2beddf).
     A 10-12° error whose contour agrees sits at the LOST bound (probe in this suite's settings: 40° then 50°, the
@@ -445,7 +444,7 @@ def test_a_pose_jump_is_flagged_in_the_frame_it_happens_and_lost_where_the_step_
     assert tracked_error < 5.0 and int(tracked.status) != jt.Status.LOST, (tracked_error, int(tracked.status))
     saved = dict(vars(tracker))  # the group's other tests use this tracker: its motion memory is put back after
     try:
-        outcomes, motion_after = {}, {}
+        outcomes = {}
         for degrees in (40.0, 50.0):
             tracker.last_box_motion = saved["last_box_motion"]
             _, result, _ = tracker.step(_turned(state, degrees), sequence["images"][2], recover=False)  # its own status
@@ -454,7 +453,6 @@ def test_a_pose_jump_is_flagged_in_the_frame_it_happens_and_lost_where_the_step_
             print(f"{degrees:.0f}° jump: error {error:.1f}°, {jt.Status(int(result.status)).name}, confidence "
                   f"{float(result.confidence):.3f}, evidence {evidence}")
             outcomes[degrees] = (error, int(result.status), float(result.confidence))
-            motion_after[degrees] = tracker.last_box_motion
     finally:
         vars(tracker).clear()
         vars(tracker).update(saved)
@@ -463,10 +461,6 @@ def test_a_pose_jump_is_flagged_in_the_frame_it_happens_and_lost_where_the_step_
         assert status in (jt.Status.LOST, jt.Status.UNCERTAIN), (degrees, jt.Status(status).name)
         assert float(tracked.confidence) > confidence + 0.2, (float(tracked.confidence), confidence)
     assert outcomes[50.0][1] == jt.Status.LOST, jt.Status(outcomes[50.0][1]).name
-    # The next windows follow the motion of a frame that tracked: the UNCERTAIN frame's step is recorded, the LOST
-    # frame's jump is not (the motion before it is kept).
-    assert not np.allclose(motion_after[40.0], saved["last_box_motion"]), motion_after[40.0]
-    np.testing.assert_array_equal(motion_after[50.0], saved["last_box_motion"])
 
 
 @pytest.mark.xdist_group("lines_sift")

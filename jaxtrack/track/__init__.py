@@ -41,6 +41,5 @@ from ._step import motion_correspondences as motion_correspondences
 from ._step import start_frame as start_frame
 from ._step import track_step as track_step
 from ._tracker import DEFAULT_POSE_PRIOR as DEFAULT_POSE_PRIOR
-from ._tracker import TRACKED_STATUSES as TRACKED_STATUSES
 from ._tracker import Tracker as Tracker
 from ._tracker import default_params as default_params

@@ -9,8 +9,8 @@ stream of frames into poses:
         state, result, info = tracker.step(state, frames)    # result.status, result.confidence
 
 Between frames, on the host: the crop around the object (one static size class for all cameras, or the fixed
-working resolution, holding the projected model at t and where the motion of the last frame that tracked carries it,
-with a margin that grows with that motion), SIFT detection
+working resolution, holding the projected model at t and where the last step's motion carries it, with a margin
+that grows with that motion), SIFT detection
 and matching (OpenCV, one thread per camera and core), and a re-plan of the rasteriser when a render overflowed
 (the frame is then redone). Everything else is `track_step`, one compiled program per configuration,
 crop size class and raster plan; with a modality that reads host inputs (SIFT) its first part, `start_frame`
@@ -71,11 +71,6 @@ from ._step import (
 _track_step_jit = persistent_jit(track_step)
 _start_frame_jit = persistent_jit(start_frame)
 _recover_pose_jit = persistent_jit(recover_pose)
-
-# Statuses whose step is the object's motion, the one the next windows follow (`Tracker.record_motion`): a LOST
-# frame's pose jumped where the object is not, and a RECOVERED frame's jump is the search's, not a velocity; after
-# them the windows follow the last motion of a frame that tracked.
-TRACKED_STATUSES = (int(Status.OK), int(Status.UNCERTAIN))
 
 # The flow's structure factor counts no structure near the limbs of the render (`TrackerParams.flow_limb_slope`,
 # `jaxtrack.cues.flow.limb_pixels`): a one-pixel depth step above tan 80°. Rigid objects only (chains: not measured,
@@ -436,8 +431,9 @@ class Tracker:
     def record_motion(self, boxes_before, boxes_after) -> None:
         """Remember one step's image motion from the object's (C, 4) projected boxes before and after it (px; None:
         no motion, as after `start`): the next step's windows follow it (`_crop_boxes`). Where a box is not finite
-        (the object behind a camera) the previous motion is kept. `step` records only frames whose status is in
-        `TRACKED_STATUSES` (after a LOST or RECOVERED frame the windows follow the motion of the last frame that tracked)."""
+        (the object behind a camera) the previous motion is kept. Every step records its motion, a LOST frame's
+        too (recording only OK and UNCERTAIN frames was measured and not kept: README, "The crop windows follow the
+        motion")."""
         if boxes_before is None or boxes_after is None:
             self.last_box_motion = None
             return
@@ -480,8 +476,9 @@ class Tracker:
 
         Native resolution (`TrackerConfig.working_shape` None): integer offsets, a size class, scales None.
         Working resolution: each camera's window covers the boxes of `_crop_boxes` (the box at t and where the
-        last step's motion carries it; `follow_motion=False`: the box alone, for a step without motion) plus the margin at the fixed shape, scale s = full-frame pixels per crop
-        pixel (at least 1 while the window fits in the frame), centred on those boxes and kept inside the frame.
+        last step's motion carries it; `follow_motion=False`: the box alone, for a step without motion) plus the
+        margin at the fixed shape, scale s = full-frame pixels per crop pixel (at least 1 while the window fits in
+        the frame), centred on those boxes and kept inside the frame.
         Native crops hold the same boxes and margin. (None, None, None) when the object is behind a camera.
         """
         boxes = projected_boxes(self.mesh, self.cameras, T, theta, self.model) if boxes is None else boxes.copy()
@@ -494,7 +491,7 @@ class Tracker:
         # Keep what is on screen; a box entirely off screen still gets a crop at the border.
         boxes[:, [0, 2]] = np.clip(boxes[:, [0, 2]], 0, W - 1)
         boxes[:, [1, 3]] = np.clip(boxes[:, [1, 3]], 0, H - 1)
-        boxes, margin = self._crop_boxes(boxes, follow_motion)  # the box carried on by the motion may leave the frame: clip again
+        boxes, margin = self._crop_boxes(boxes, follow_motion)  # the carried box may leave the frame: clip again
         boxes[:, [0, 2]] = np.clip(boxes[:, [0, 2]], 0, W - 1)
         boxes[:, [1, 3]] = np.clip(boxes[:, [1, 3]], 0, H - 1)
         if self.config.working_shape is not None:
@@ -666,8 +663,7 @@ class Tracker:
                 and self.config.recovery.hypotheses):
             self._warm_up_recovery(new_state, frames_j, params)
         timings["total_s"] = time.perf_counter() - start
-        if int(result.status) in TRACKED_STATUSES:  # a LOST frame's jump, or a search's, is not the object's motion
-            self.record_motion(before, self._boxes_at(result.T_world_root, result.theta))
+        self.record_motion(before, self._boxes_at(result.T_world_root, result.theta))
         return new_state, result, {"timings": timings, "offsets": offsets, "crop_shape": crop_shape, "scales": scales,
                                    "recovery": recovery}
 
