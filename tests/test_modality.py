@@ -54,6 +54,27 @@ class FixedPoints(Modality):
         return jnp.asarray(self.factor, counts.own.dtype)
 
 
+@register_modality
+class ShiftedPoints(Modality):
+    """A motion modality's stand-in: known rows that say another pose (a frame-to-frame cue carrying an error)."""
+
+    name = "shifted_points"
+    motion = True
+
+    @classmethod
+    def from_config(cls, config):
+        return cls()
+
+    def start(self, ctx, state, host, params):
+        return host
+
+    def rows(self, ctx, state, frame, carry, pose, render, round_index, params):
+        return frame, carry
+
+    def weight_scale(self, counts: FusionCounts, params, prediction):
+        return jnp.ones((), counts.own.dtype)
+
+
 def _scene_rows(seed=0, noise_px=0.5, capacity=64):
     scene = random_pose_scene(seed, num_points=60, noise_px=noise_px, num_cameras=1, dtype=np.float64)
     corr = make_correspondences(scene.cameras, scene.pixel, scene.p_model, camera_index=scene.camera_index,
@@ -107,6 +128,40 @@ def test_refinement_loop_with_a_new_modality_alone():
     assert int(res.status) == jt.Status.OK
     assert np.abs(np.asarray(res.pose.T_world_root - direct.T_world_root)).max() < 1e-6
     assert np.all(np.asarray(res.rows.cue)[np.asarray(res.rows.weight) > 0] == FixedPoints.cue)
+
+
+def test_the_motion_rows_leave_the_refinement_after_motion_rounds():
+    """`RefineSettings.motion_rounds` K: the motion modalities' rows count in rounds 0 .. K − 1, × motion_late_factor
+    after. A contour stand-in's rows say the true pose, a motion stand-in's rows a pose 3° / 20 mm away: with every
+    round (∞) the refinement settles between them; with K = 1 and factor 0 the later rounds solve the contour rows
+    alone, which is their own solution, and the last round's motion rows weigh nothing; a factor of 1 is ∞."""
+    scene, corr = _scene_rows(noise_px=0.0)
+    T_off = np.asarray(perturb_pose(np.random.default_rng(3), scene.T_world_root, np.radians(3.0), 20.0))
+    from jaxtrack.geometry import project_points
+
+    pixel_off, _ = project_points(jax.tree.map(lambda a: a[0], scene.cameras),
+                                  jnp.einsum("ij,nj->ni", T_off[:3, :3], scene.p_model) + T_off[:3, 3])
+    motion = make_correspondences(scene.cameras, np.asarray(pixel_off), scene.p_model, camera_index=scene.camera_index,
+                                  capacity=64)
+    tag = lambda c, m: eqx.tree_at(lambda c: c.cue, c, jnp.full_like(c.cue, m.cue))
+    contour_mod, motion_mod = FixedPoints(), ShiftedPoints()
+    frames = (tag(corr, contour_mod), tag(motion, motion_mod))
+    ctx = _ctx(scene)
+    zero = jnp.zeros(())
+
+    def refine(rounds_with_motion, late):
+        settings = RefineSettings(jnp.asarray(1e-6), zero, zero, zero, motion_rounds=jnp.asarray(rounds_with_motion),
+                                  motion_late_factor=jnp.asarray(late))
+        return refine_rounds((contour_mod, motion_mod), ctx, (None, None), frames, Pose(jnp.asarray(T_off), jnp.zeros((0,))),
+                             None, settings, 6, 10, min_rounds=3)
+
+    every, split, ones = refine(jnp.inf, 0.0), refine(1.0, 0.0), refine(1.0, 1.0)
+    alone = solve_pose(jt.rigid_model(jnp.float64), frames[0], jnp.asarray(T_off), config=jt.SolverConfig(max_steps=50))
+    err = lambda r: float(np.abs(np.asarray(r.pose.T_world_root) - np.asarray(alone.T_world_root)).max())
+    assert err(split) < 1e-6 and err(every) > 1.0, (err(split), err(every))  # mm: between the two row sets with ∞
+    np.testing.assert_allclose(np.asarray(ones.pose.T_world_root), np.asarray(every.pose.T_world_root), atol=1e-9)
+    last = np.asarray(split.rows.weight)[np.asarray(split.rows.cue) == motion_mod.cue]
+    assert last.size and np.all(last == 0.0) and int(split.rounds) >= 3
 
 
 def test_fuse_rows_is_the_section_v_rule():

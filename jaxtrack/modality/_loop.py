@@ -131,6 +131,9 @@ class RefineSettings(eqx.Module):
         motion_robust_px: scale s (px of the crops) of a Cauchy loss on the motion modalities' rows: each round
             weighs a row by 1 / (1 + (e / s)²), e its reprojection error at the round's pose (IRLS), so that rows
             the pose does not explain (an occluder's flow) lose their pull; ≤ 0: off (eq. 5 as it is).
+        motion_rounds, motion_late_factor: the motion modalities' rows count fully in rounds 0 .. motion_rounds − 1
+            and × motion_late_factor in the later ones (0: those fit the contour modalities alone, from where the
+            motion brought the pose; M3T's split); motion_rounds ∞: every round (eq. 5, the default).
     """
 
     settle_motion: jax.Array
@@ -143,6 +146,8 @@ class RefineSettings(eqx.Module):
     prior_follows_round: jax.Array = eqx.field(default_factory=lambda: jnp.zeros(()))
     depth_invariance: jax.Array = eqx.field(default_factory=lambda: jnp.zeros(()))
     motion_robust_px: jax.Array = eqx.field(default_factory=lambda: -jnp.ones(()))
+    motion_rounds: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(jnp.inf))
+    motion_late_factor: jax.Array = eqx.field(default_factory=lambda: jnp.zeros(()))
 
 
 class RoundState(eqx.Module):
@@ -191,7 +196,9 @@ def _round(modalities, ctx, contexts, states, frames, params, settings: RefineSe
     for m, mctx, s, f, c in zip(modalities, contexts, states, frames, state.carries):
         rows, c = m.rows(mctx, s, f, c, pose, ren, state.round_index, params)
         if m.motion:
-            rows = rows.with_weight(rows.weight * cauchy_weights(reprojection_px(ctx, rows, pose), settings.motion_robust_px))
+            live = jnp.where(state.round_index < settings.motion_rounds, 1.0, settings.motion_late_factor).astype(rows.weight.dtype)
+            rows = rows.with_weight(rows.weight * live
+                                    * cauchy_weights(reprojection_px(ctx, rows, pose), settings.motion_robust_px))
         sets.append(rows)
         carries.append(c)
     fused = fuse_rows(modalities, sets, params)

@@ -294,6 +294,9 @@ class TrackerParams(eqx.Module):
         motion_robust_px: scale (px of the crops) of the Cauchy loss on the flow and SIFT rows: the prediction's
             second pass (`_robust_prediction`) and every refinement round (`jaxtrack.modality.RefineSettings
             .motion_robust_px`); ≤ 0: off (eq. 5 as it is; the default for chains, 2 for rigid objects).
+        motion_rounds, motion_late_factor: the flow and SIFT rows count fully in the refinement's rounds 0 ..
+            motion_rounds − 1 and × motion_late_factor after (`jaxtrack.modality.RefineSettings.motion_rounds`);
+            ∞: every round (the method, the default; `jaxtrack.track._tracker.MOTION_ROUNDS`).
     """
 
     weights: CueWeights
@@ -323,6 +326,8 @@ class TrackerParams(eqx.Module):
     uncertain_confidence: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(0.5))
     lost_confidence: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(0.25))
     motion_robust_px: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(-1.0))
+    motion_rounds: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(jnp.inf))
+    motion_late_factor: jax.Array = eqx.field(default_factory=lambda: jnp.zeros(()))
 
 
 class TrackerSetup(eqx.Module):
@@ -658,7 +663,8 @@ def track_step(
         settings = RefineSettings(params.region.settle_motion, params.region.joint_prior,
                                   params.pose_prior_rotation, params.pose_prior_translation, params.render_reuse_px,
                                   params.pose_prior_rotation_abs, params.pose_prior_translation_abs,
-                                  params.prior_follows_round, params.depth_invariant, params.motion_robust_px)
+                                  params.prior_follows_round, params.depth_invariant, params.motion_robust_px,
+                                  params.motion_rounds, params.motion_late_factor)
         res = refine_rounds(modalities, ctx, state.modalities, data, Pose(T_pred, theta_pred.astype(dtype)), params, settings,
                             rounds, steps, min_rounds=min_rounds, contexts=contexts)
         T_new, theta_new = res.pose.T_world_root, jnp.clip(res.pose.theta, params.theta_lower, params.theta_upper)
