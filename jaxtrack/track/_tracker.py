@@ -103,10 +103,11 @@ DEPTH_INVARIANT = 1.0
 MOTION_ROBUST_PX = 2.0
 # The refinement rounds whose fused solve holds the flow and SIFT rows (`TrackerParams.motion_rounds`; ∞: every round,
 # eq. 5) and the factor on them after (`motion_late_factor`); $JAXTRACK_MOTION_ROUNDS / $JAXTRACK_MOTION_LATE_FACTOR set
-# other defaults (opt-in, not a default: README "Motion rows in the last rounds"). Measured with 3 and 0 (M3T's split:
-# the motion predicts, the contour refines): the tea box 0.81 → 0.22°, the occluded-box preset 79 → 90 % without
-# resets, the turntable teapot 2.03 → 0.68°; but the real dragon 46 → 2 %, the real cube 100 → 87 % and the occluded
-# frame-rate sequences 24 / 9 → 0 / 0 %: where the contour misleads, the motion rows in the last rounds hold the pose.
+# other defaults (opt-in, README "Motion rows in the last rounds"). 3 and 0.3 (M3T's split: the motion predicts, the
+# contour refines) measured on every experiment: the tea box 0.81 → 0.48°, the presets without resets all at 95-100 %,
+# the turntable teapot 1.50 → 0.50°, the occlusion experiment 3.25 → 1.97°; but the real dragon 46 → 21 %, the truck
+# 6.75 → 10.47°, Table I's all cues fail at frame 77 at σ = 60 (the paper: 85) and the occluded frame-rate sequences
+# without resets 24 / 18 → 0 / 0 %: where the contour misleads, the motion rows in the last rounds hold the pose.
 MOTION_ROUNDS = float(os.environ.get("JAXTRACK_MOTION_ROUNDS", "inf"))
 MOTION_LATE_FACTOR = float(os.environ.get("JAXTRACK_MOTION_LATE_FACTOR", "0"))
 
