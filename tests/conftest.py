@@ -26,6 +26,9 @@ os.environ.setdefault("JAXTRACK_RECOVERY_WARMUP", "0")
 # exported step compiles as another XLA program than the plain one the other tests share, and a program loaded from
 # disk is not traced, which the trace-count tests would read as a missing trace. tests/test_exported.py turns it on.
 os.environ.setdefault("JAXTRACK_EXPORT_CACHE", "0")
+# The suite checks the tracker's defaults: the opt-in motion rounds of an experiment's shell are not inherited.
+os.environ.pop("JAXTRACK_MOTION_ROUNDS", None)
+os.environ.pop("JAXTRACK_MOTION_LATE_FACTOR", None)
 
 jax.config.update("jax_enable_x64", True)
 

@@ -132,13 +132,15 @@ def test_refinement_loop_with_a_new_modality_alone():
 
 def test_the_motion_rows_leave_the_refinement_after_motion_rounds():
     """`RefineSettings.motion_rounds` K: the motion modalities' rows count in rounds 0 .. K − 1, × motion_late_factor
-    after. A contour stand-in's rows say the true pose, a motion stand-in's rows a pose 3° / 20 mm away: with every
-    round (∞) the refinement settles between them; with K = 1 and factor 0 the later rounds solve the contour rows
-    alone, which is their own solution, and the last round's motion rows weigh nothing; a factor of 1 is ∞."""
-    scene, corr = _scene_rows(noise_px=0.0)
-    T_off = np.asarray(perturb_pose(np.random.default_rng(3), scene.T_world_root, np.radians(3.0), 20.0))
+    f after. A contour stand-in's rows say the true pose, a motion stand-in's rows a pose 3° / 20 mm away: with every
+    round (∞) the refinement settles between them; with K = 1 and f = 0 the later rounds solve the contour rows alone
+    (their own solution) and the last round's motion rows weigh nothing; f = 0.3 ends strictly between, f = 1 is ∞.
+    Rounds 0 .. K − 1 are ∞'s rounds (K = 2 with a cap of 2 rounds is ∞ with that cap, a third round is not), and a loop
+    that could stop as settled after round 1 runs past K. One compiled program for every (K, f)."""
     from jaxtrack.geometry import project_points
 
+    scene, corr = _scene_rows(noise_px=0.0)
+    T_off = np.asarray(perturb_pose(np.random.default_rng(3), scene.T_world_root, np.radians(3.0), 20.0))
     pixel_off, _ = project_points(jax.tree.map(lambda a: a[0], scene.cameras),
                                   jnp.einsum("ij,nj->ni", T_off[:3, :3], scene.p_model) + T_off[:3, 3])
     motion = make_correspondences(scene.cameras, np.asarray(pixel_off), scene.p_model, camera_index=scene.camera_index,
@@ -149,19 +151,32 @@ def test_the_motion_rows_leave_the_refinement_after_motion_rounds():
     ctx = _ctx(scene)
     zero = jnp.zeros(())
 
-    def refine(rounds_with_motion, late):
-        settings = RefineSettings(jnp.asarray(1e-6), zero, zero, zero, motion_rounds=jnp.asarray(rounds_with_motion),
-                                  motion_late_factor=jnp.asarray(late))
-        return refine_rounds((contour_mod, motion_mod), ctx, (None, None), frames, Pose(jnp.asarray(T_off), jnp.zeros((0,))),
-                             None, settings, 6, 10, min_rounds=3)
+    traces = []
 
-    every, split, ones = refine(jnp.inf, 0.0), refine(1.0, 0.0), refine(1.0, 1.0)
+    @eqx.filter_jit
+    def run(K, f, cap, min_rounds):
+        traces.append((cap, min_rounds))
+        settings = RefineSettings(jnp.asarray(1e-6), zero, zero, zero, motion_rounds=K, motion_late_factor=f)
+        return refine_rounds((contour_mod, motion_mod), ctx, (None, None), frames, Pose(jnp.asarray(T_off), jnp.zeros((0,))),
+                             None, settings, cap, 10, min_rounds=min_rounds)
+
+    refine = lambda K, f, cap=6, min_rounds=3: run(jnp.asarray(K, jnp.float64), jnp.asarray(f, jnp.float64), cap, min_rounds)
+    every, split, ones, mid = refine(np.inf, 0.0), refine(1.0, 0.0), refine(1.0, 1.0), refine(1.0, 0.3)
     alone = solve_pose(jt.rigid_model(jnp.float64), frames[0], jnp.asarray(T_off), config=jt.SolverConfig(max_steps=50))
     err = lambda r: float(np.abs(np.asarray(r.pose.T_world_root) - np.asarray(alone.T_world_root)).max())
     assert err(split) < 1e-6 and err(every) > 1.0, (err(split), err(every))  # mm: between the two row sets with ∞
+    assert err(every) > err(mid) + 0.1 and err(mid) > err(split) + 0.1, (err(every), err(mid), err(split))
     np.testing.assert_allclose(np.asarray(ones.pose.T_world_root), np.asarray(every.pose.T_world_root), atol=1e-9)
     last = np.asarray(split.rows.weight)[np.asarray(split.rows.cue) == motion_mod.cue]
-    assert last.size and np.all(last == 0.0) and int(split.rounds) >= 3
+    assert last.size and np.all(last == 0.0)
+    # rounds 0 .. K − 1 are ∞'s rounds; round K is not
+    first_two = (refine(2.0, 0.0, cap=2, min_rounds=0), refine(np.inf, 0.0, cap=2, min_rounds=0))
+    np.testing.assert_allclose(np.asarray(first_two[0].pose.T_world_root), np.asarray(first_two[1].pose.T_world_root), atol=1e-12)
+    assert err(refine(2.0, 0.0, cap=3, min_rounds=0)) < 1e-6
+    # ∞ settles after its second round; with K = 3 the loop runs rounds 3 .. without the motion rows anyway
+    free, late = refine(np.inf, 0.0, min_rounds=0), refine(3.0, 0.0, min_rounds=0)
+    assert int(free.rounds) < 4 <= int(late.rounds) and err(late) < 1e-6, (int(free.rounds), int(late.rounds))
+    assert traces == [(6, 3), (2, 0), (3, 0), (6, 0)], traces  # one program per (cap, min_rounds), none per (K, f)
 
 
 def test_fuse_rows_is_the_section_v_rule():
@@ -345,3 +360,20 @@ def test_the_robust_prediction_is_not_pulled_by_rows_of_a_second_motion():
     one = solve_pose(model, moved, T0, config=jt.SolverConfig(max_steps=20), ray_origins=scene.cameras.center_world,
                      depth_invariance=0.0)
     np.testing.assert_allclose(np.asarray(plain.T_world_root), np.asarray(one.T_world_root), atol=1e-9)
+
+
+def test_the_motion_rounds_default_to_every_round_and_a_bad_environment_value_names_its_variable(monkeypatch):
+    """The tracker's defaults keep the motion rows in every round (K = ∞, f = 0 unused), chains too; an opt-in value
+    from the environment is checked with a message naming the variable."""
+    from jaxtrack.track import default_params
+    from jaxtrack.track._tracker import _env_number
+
+    for model in (jt.rigid_model(jnp.float64), jt.chain_model([-1, 0], [(0.0, 0.0, 1.0)], [(0.0, 0.0, 0.0)], jnp.float64)):
+        p = default_params(model, (96, 128), jnp.float64)
+        assert np.isinf(float(p.motion_rounds)) and float(p.motion_late_factor) == 0.0
+    monkeypatch.setenv("JAXTRACK_MOTION_ROUNDS", "3")
+    assert _env_number("JAXTRACK_MOTION_ROUNDS", "inf", 0.0, float("inf")) == 3.0
+    for bad in ("", "three", "nan", "-1"):
+        monkeypatch.setenv("JAXTRACK_MOTION_ROUNDS", bad)
+        with pytest.raises(ValueError, match="JAXTRACK_MOTION_ROUNDS"):
+            _env_number("JAXTRACK_MOTION_ROUNDS", "inf", 0.0, float("inf"))

@@ -376,7 +376,8 @@ def test_the_windows_follow_the_last_motion_and_hold_the_object_at_t_and_where_i
     assert abs((centred[0] + centred[2]) / 2 - (box[0][0] + box[0][2]) / 2) < 1.0 and shift > 0.4 * motion[0][0], shift
     # A step without motion (the recovery's restart on frames t+1 → t+1) asks for the box alone, the motion kept
     tracker.crop_follows_motion = True
-    (y0, x0), s_alone = tracker.windows(None, None, box, follow_motion=False)[0][0], tracker.windows(None, None, box, follow_motion=False)[2][0]
+    offsets_alone, _, scales_alone = tracker.windows(None, None, box, follow_motion=False)
+    (y0, x0), s_alone = offsets_alone[0], scales_alone[0]
     np.testing.assert_array_equal(tracker.last_box_motion, motion)
     assert np.allclose([x0, y0], still[0][0][:2]) and float(s_alone) == still[0][1], ((x0, y0, s_alone), still[0])
 

@@ -133,7 +133,8 @@ class RefineSettings(eqx.Module):
             the pose does not explain (an occluder's flow) lose their pull; ≤ 0: off (eq. 5 as it is).
         motion_rounds, motion_late_factor: the motion modalities' rows count fully in rounds 0 .. motion_rounds − 1
             and × motion_late_factor in the later ones (0: those fit the contour modalities alone, from where the
-            motion brought the pose; M3T's split); motion_rounds ∞: every round (eq. 5, the default).
+            motion brought the pose; M3T's split); motion_rounds ∞: every round (eq. 5, the default). With K finite
+            and f ≠ 1 the loop does not stop as settled before round K + 1 (the rounds after K run).
     """
 
     settle_motion: jax.Array
@@ -146,7 +147,7 @@ class RefineSettings(eqx.Module):
     prior_follows_round: jax.Array = eqx.field(default_factory=lambda: jnp.zeros(()))
     depth_invariance: jax.Array = eqx.field(default_factory=lambda: jnp.zeros(()))
     motion_robust_px: jax.Array = eqx.field(default_factory=lambda: -jnp.ones(()))
-    motion_rounds: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(jnp.inf))
+    motion_rounds: jax.Array = eqx.field(default_factory=lambda: jnp.full((), jnp.inf))
     motion_late_factor: jax.Array = eqx.field(default_factory=lambda: jnp.zeros(()))
 
 
@@ -261,9 +262,14 @@ def refine_rounds(
     def body(state: RoundState) -> RoundState:
         return _round(modalities, ctx, contexts, states, frames, params, settings, anchor, solver, state)
 
+    # With the motion rows weighed down after round K, rounds 0 .. K may not end the loop as settled: the rounds after
+    # K are the ones the setting is for (traced; K = ∞ or a factor of 1 leaves `min_rounds` as it is).
+    late = jnp.isfinite(settings.motion_rounds) & (settings.motion_late_factor != 1)
+    settle_from = jnp.maximum(min_rounds, jnp.where(late, settings.motion_rounds + 1, 0))
+
     def cond(state: RoundState):
         running = (state.status == Status.OK) | (state.status == Status.RENDER_OVERFLOW)
-        return (state.round_index < rounds) & ~(state.settled & (state.round_index >= min_rounds)) & running
+        return (state.round_index < rounds) & ~(state.settled & (state.round_index >= settle_from)) & running
 
     zero_i, ok = jnp.zeros((), jnp.int32), jnp.asarray(Status.OK, jnp.int32)
     renders_ = any(m.needs_render for m in modalities)

@@ -296,7 +296,8 @@ class TrackerParams(eqx.Module):
             .motion_robust_px`); ≤ 0: off (eq. 5 as it is; the default for chains, 2 for rigid objects).
         motion_rounds, motion_late_factor: the flow and SIFT rows count fully in the refinement's rounds 0 ..
             motion_rounds − 1 and × motion_late_factor after (`jaxtrack.modality.RefineSettings.motion_rounds`);
-            ∞: every round (the method, the default; `jaxtrack.track._tracker.MOTION_ROUNDS`).
+            ∞: every round (the method; the field's default, and `default_params`' for chains; rigid objects take
+            `jaxtrack.track._tracker.MOTION_ROUNDS` / `MOTION_LATE_FACTOR`, ∞ / 0 unless the environment says).
     """
 
     weights: CueWeights
@@ -395,7 +396,8 @@ class FrameResult(eqx.Module):
             calibrated p(frame within 5 cm / 5°) of `loss_evidence`; else the silhouette agreement of segmentation
             and model (level set), the contour modality's own agreement, or the motion inliers.
         iou: (C,) agreement of the segmentation with the model silhouette at the final pose per camera.
-        counts: (C, M) correspondences with weight per camera and configured cue (`TrackerConfig.cue_names`).
+        counts: (C, M) correspondences with weight per camera and configured cue (`TrackerConfig.cue_names`) in the
+            refinement's last round (with `TrackerParams.motion_late_factor` 0 the motion cues read 0 there).
         motion_inliers: fraction of weighted motion correspondences within `inlier_px` at the final pose.
         occluded_fraction: (C,) fraction of object pixels of frame t+1 detected as occluded.
         iterations: refinement rounds run.
