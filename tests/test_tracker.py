@@ -573,3 +573,23 @@ def test_an_injected_jump_is_lost_then_recovered(lines_sift):
     assert searched[0]["pnp_inliers"] >= 12, searched
     assert statuses == ["RECOVERED", "OK"], statuses
     assert max(errors) < 5.0, errors
+
+
+@pytest.mark.xdist_group("lines_sift")
+def test_the_recovery_restart_asks_for_windows_without_the_last_motion(sequence, lines_sift, monkeypatch):
+    """The recovery's second step runs frames t+1 → t+1 from a found pose: no motion between a frame and itself, so
+    `Tracker._restart` asks for windows around the found box without the last step's motion (`follow_motion=False`)."""
+    tracker, state, tracked = lines_sift
+    asked = []
+
+    class Asked(Exception):
+        pass
+
+    def windows(T, theta, boxes=None, follow_motion=True):
+        asked.append(follow_motion)
+        raise Asked  # the wiring is what is checked here, not the step after it
+
+    monkeypatch.setattr(tracker, "windows", windows)
+    with pytest.raises(Asked):
+        tracker._restart(state, state, tracked, sequence["images"][1], None, None, tracked.T_world_root, {})
+    assert asked == [False]
