@@ -440,8 +440,8 @@ class Tracker:
 
         With `crop_follows_motion` (and a last motion): the union of the box at t and the box moved on by the last
         step's motion of each side (constant velocity: where the object will be at t+1), plus the fixed margin and
-        half the largest motion of any side in any camera, for a change of speed. Else the box at t plus `_crop_margin` (1.5x the motion on every
-        side). After a 54 px step the window holds the object with 54 + 2 x 51 px along the motion and 2 x 51 px
+        half the largest motion of any side in any camera, for a change of speed. Else the box at t plus
+        `_crop_margin` (1.5x the motion on every side). After a 54 px step the window holds the object with 54 + 2 x 51 px along the motion and 2 x 51 px
         across it instead of 2 x 105 px both ways, so the fixed working resolution keeps more of the object's pixels
         (the noisy moving camera at 640x480: issue 25). `follow_motion=False` (a step between a frame and itself): the
         box at t and the fixed margin, whatever the last motion."""
