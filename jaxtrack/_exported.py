@@ -20,6 +20,9 @@ arguments), calls with weakly typed arrays (an exported program's inputs and out
 entry whose program fails to run (then for good, in this process). A pickle that differs between processes only
 misses: the program is exported again under another name.
 
+Every program here, kept or plain, compiles with `compiler_options()` (XLA's defaults; $JAXTRACK_FUSION_EMITTERS=0
+trades run time for a shorter compile, below).
+
 Off unless a folder is set: `enable_compilation_cache` sets it (`jaxtrack track`, `bench`, the experiments);
 `JAXTRACK_EXPORT_CACHE=0` turns it off. Serialisation needs the `flatbuffers` package (a dependency).
 """
@@ -43,6 +46,28 @@ import jax
 import numpy as np
 
 _FOLDER: list[pathlib.Path | None] = [None]
+
+# XLA:CPU's older elemental emitters instead of its MLIR fusion emitters, when $JAXTRACK_FUSION_EMITTERS=0: the
+# tracker's two large programs compile in about 60 % of the time (the first frame with an empty cache, 640x480, all
+# cues: 1 camera 20.6-21.2 → 15.3-16.0 s, 4 cameras 24.9-25.1 → 20.6-22.8 s) but run slower (ms per frame 28-29 → 33-34
+# on 1 camera, 114-118 → 148-150 on 4): a one-time saving against a lasting cost, so XLA's default stays the default.
+# The test suite, whose trackers run a few frames each, opts in (tests/conftest.py). README "Fast compile, slower
+# frames".
+CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+
+
+def compiler_options(platform: str | None = None) -> dict | None:
+    """XLA compile options of the programs `persistent_jit` makes on `platform` (default: jax's default backend):
+    none (XLA's defaults) unless $JAXTRACK_FUSION_EMITTERS=0, then `CPU_COMPILER_OPTIONS` on the CPU (the faster compile,
+    the slower program); none on other backends."""
+    value = os.environ.get("JAXTRACK_FUSION_EMITTERS", "1")
+    if value not in ("0", "1"):
+        raise ValueError(f"$JAXTRACK_FUSION_EMITTERS must be 0 or 1, got {value!r}")
+    if value == "1" or (platform or jax.default_backend()) != "cpu":
+        return None
+    return dict(CPU_COMPILER_OPTIONS)
+
+
 _PLAIN = object()  # an entry meaning "this signature runs eqx.filter_jit"
 
 
@@ -206,7 +231,8 @@ class _Entry:
         # when some inputs are committed to the device (outputs of the previous call) and others not.
         placement = jax.sharding.SingleDeviceSharding(device)
         self.exported = exported
-        self.call = jax.jit(exported.call, in_shardings=placement, out_shardings=placement)
+        self.call = jax.jit(exported.call, in_shardings=placement, out_shardings=placement,
+                            compiler_options=compiler_options(device.platform))
         self.out_treedef, self.out_is_dynamic, self.out_static = out_treedef, out_is_dynamic, out_static
         self.compiled = False
 
@@ -244,11 +270,32 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
         self.fn = fn
         self.name = getattr(fn, "__name__", "fn").strip("_") or "fn"
         self.qualname = f"{getattr(fn, '__module__', '?')}.{getattr(fn, '__qualname__', self.name)}"
-        self.plain = eqx.filter_jit(fn)
+        self._plain: dict = {}  # compile options (as a tuple) -> eqx.filter_jit(fn) compiled with them
         self.memory: dict = {}
         self.loaded = 0
         self.exported = 0
         self._lock = threading.Lock()
+
+    def plain(self, *args, **kwargs):
+        """`eqx.filter_jit(fn)(*args, **kwargs)`, compiled with `compiler_options()` of jax's default backend (read at
+        the call: the backend and $JAXTRACK_FUSION_EMITTERS may be set after the import). Under a transformation or
+        inside a caller's jit (tracers among the arguments) with none: XLA takes options only for a top-level program
+        (the caller's)."""
+        traced = any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves((args, kwargs)))
+        options = None if traced else compiler_options()
+        try:
+            return self._plain_jit(options)(*args, **kwargs)
+        except ValueError as error:  # a caller's trace whose arguments are all concrete: a nested jit after all
+            if options is None or "compiler_options" not in str(error):
+                raise
+            return self._plain_jit(None)(*args, **kwargs)
+
+    def _plain_jit(self, options):
+        key = tuple(sorted((options or {}).items()))
+        jitted = self._plain.get(key)
+        if jitted is None:
+            jitted = self._plain[key] = eqx.filter_jit(self.fn, compiler_options=options)
+        return jitted
 
     def _resolve(self, args, kwargs):
         """(entry, dynamic leaves, key) of a call: entry an `_Entry` (made or loaded on first use), or `_PLAIN` when

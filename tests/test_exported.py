@@ -230,7 +230,10 @@ def test_the_tracker_setups_signature_is_the_same_in_every_process():
 def test_a_tracker_with_the_cache_tracks_as_without_and_a_new_process_traces_nothing(folder, monkeypatch):
     """With SIFT (a modality that reads host inputs) and a kept, asynchronously dispatched program, `Tracker.step`
     runs `start_frame` (crops, render at χ_t) as a program of its own while the host matches keypoints, then
-    `track_step(early=)`: the poses equal those of the one program `eqx.filter_jit` runs without the cache."""
+    `track_step(early=)`: the poses equal those of the one program `eqx.filter_jit` runs without the cache. With XLA's
+    default emitters (the product's; the suite's older ones, $JAXTRACK_FUSION_EMITTERS=0, round the split programs
+    differently: 1.2e-4 in the pose matrix here)."""
+    monkeypatch.setenv("JAXTRACK_FUSION_EMITTERS", "1")
     import jaxtrack as jt
     from jaxtrack.render import make_mesh
     from jaxtrack.synth import SynthConfig, render_sequence
@@ -379,3 +382,34 @@ def test_default_params_are_strongly_typed_so_the_step_is_kept(dtype):
     assert not weak, weak
     assert {x.dtype for x in jax.tree.leaves(params) if jnp.issubdtype(x.dtype, jnp.floating)} == {jnp.dtype(dtype)}
     assert to_device(1.0).weak_type and not to_device(to_device(1.0), dtype).weak_type
+
+
+def test_the_programs_compile_with_the_cpu_compiler_options(folder, monkeypatch):
+    """Both paths (kept and plain) pass `compiler_options()` to XLA: an option XLA does not know makes them fail, the
+    fast-compile options give eqx.filter_jit's outputs; XLA's defaults without $JAXTRACK_FUSION_EMITTERS (or = 1) and
+    on other backends, and a bad value names the variable."""
+    monkeypatch.delenv("JAXTRACK_FUSION_EMITTERS", raising=False)
+    assert _exported.compiler_options("cpu") is None
+    monkeypatch.setenv("JAXTRACK_FUSION_EMITTERS", "1")
+    assert _exported.compiler_options("cpu") is None
+    monkeypatch.setenv("JAXTRACK_FUSION_EMITTERS", "yes")
+    with pytest.raises(ValueError, match="JAXTRACK_FUSION_EMITTERS"):
+        _exported.compiler_options("cpu")
+    monkeypatch.setenv("JAXTRACK_FUSION_EMITTERS", "0")
+    assert _exported.compiler_options("cpu") == {"xla_cpu_use_fusion_emitters": False}
+    assert _exported.compiler_options("gpu") is None
+    m, x = Scaled(jnp.arange(3.0), 2), jnp.array([1.0, -2.0, 0.5])
+    expected = eqx.filter_jit(model)(m, x)
+    kept, plain = persistent_jit(model), persistent_jit(model)
+    monkeypatch.setattr(_exported, "_FOLDER", [None])
+    assert np.array_equal(np.asarray(plain(m, x)[1]), np.asarray(expected[1]))
+    monkeypatch.setattr(_exported, "_FOLDER", [folder])
+    assert np.array_equal(np.asarray(kept(m, x)[1]), np.asarray(expected[1])) and kept.exported == 1
+    monkeypatch.setattr(_exported, "CPU_COMPILER_OPTIONS", {"xla_cpu_no_such_option": True})
+    with pytest.warns(RuntimeWarning, match="kept program"), pytest.raises(Exception, match="xla_cpu_no_such_option"):
+        persistent_jit(model)(m, 2 * x)  # kept: its program fails, then the plain path reports it
+    monkeypatch.setattr(_exported, "_FOLDER", [None])
+    with pytest.raises(Exception, match="xla_cpu_no_such_option"):
+        plain(m, 3 * x)  # a new options set: compiled again with them
+    monkeypatch.setenv("JAXTRACK_FUSION_EMITTERS", "1")
+    assert np.array_equal(np.asarray(plain(m, 3 * x)[1]), np.asarray(eqx.filter_jit(model)(m, 3 * x)[1]))
