@@ -47,12 +47,13 @@ import numpy as np
 
 _FOLDER: list[pathlib.Path | None] = [None]
 
-# XLA:CPU's older elemental emitters instead of its MLIR fusion emitters, when $JAXTRACK_FUSION_EMITTERS=0: the
-# tracker's two large programs compile in about 60 % of the time (the first frame with an empty cache, 640x480, all
-# cues: 1 camera 20.6-21.2 → 15.3-16.0 s, 4 cameras 24.9-25.1 → 20.6-22.8 s) but run slower (ms per frame 28-29 → 33-34
-# on 1 camera, 114-118 → 148-150 on 4): a one-time saving against a lasting cost, so XLA's default stays the default.
-# The test suite, whose trackers run a few frames each, opts in (tests/conftest.py). README "Fast compile, slower
-# frames".
+# XLA:CPU's older elemental emitters instead of its MLIR fusion emitters, when $JAXTRACK_FUSION_EMITTERS=0: XLA compiles
+# the tracker's two large programs in about two thirds of the time (26.9 → 17.3 s, probe), the first frame with an
+# empty cache is shorter (640x480, all cues: 1 camera 20.6-21.2 → 15.3-16.0 s, 4 cameras 24.9-25.1 → 20.6-22.8 s), but
+# the programs run slower (ms per frame 28-29 → 33-34 on 1 camera, 114-118 → 148-150 on 4): a one-time saving against
+# a lasting cost, so XLA's default stays the default. The test suite, whose trackers run a few frames each, opts in
+# (tests/conftest.py). README "Fast compile, slower frames". Should XLA drop the option, every compile under =0 fails
+# with "No such compile option" (the suite would say so first).
 CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 
 
@@ -66,6 +67,17 @@ def compiler_options(platform: str | None = None) -> dict | None:
     if value == "1" or (platform or jax.default_backend()) != "cpu":
         return None
     return dict(CPU_COMPILER_OPTIONS)
+
+
+def _jit_options(options: dict | None) -> dict:
+    """jit's keyword for `options` (none for XLA's defaults: a jax without `compiler_options` still runs those)."""
+    return {} if options is None else {"compiler_options": options}
+
+
+def _nested_options_error(error: Exception) -> bool:
+    """Whether `error` is jax refusing compile options on a jit nested in a caller's trace (whose arguments were all
+    concrete, so no tracer told us): the call then runs inside the caller's program, with its options."""
+    return isinstance(error, ValueError) and "can only be passed to top-level" in str(error)
 
 
 _PLAIN = object()  # an entry meaning "this signature runs eqx.filter_jit"
@@ -226,13 +238,12 @@ def _split(args, kwargs):
 class _Entry:
     """One signature's program: the jitted call of the exported module and how to rebuild the output tree."""
 
-    def __init__(self, exported, out_treedef, out_is_dynamic, out_static, device):
+    def __init__(self, exported, out_treedef, out_is_dynamic, out_static, device, options=None):
         # One placement for every argument (the call's device): jit would otherwise lower (and compile) the call again
         # when some inputs are committed to the device (outputs of the previous call) and others not.
         placement = jax.sharding.SingleDeviceSharding(device)
         self.exported = exported
-        self.call = jax.jit(exported.call, in_shardings=placement, out_shardings=placement,
-                            compiler_options=compiler_options(device.platform))
+        self.call = jax.jit(exported.call, in_shardings=placement, out_shardings=placement, **_jit_options(options))
         self.out_treedef, self.out_is_dynamic, self.out_static = out_treedef, out_is_dynamic, out_static
         self.compiled = False
 
@@ -286,15 +297,16 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
         try:
             return self._plain_jit(options)(*args, **kwargs)
         except ValueError as error:  # a caller's trace whose arguments are all concrete: a nested jit after all
-            if options is None or "compiler_options" not in str(error):
+            if options is None or not _nested_options_error(error):
                 raise
             return self._plain_jit(None)(*args, **kwargs)
 
     def _plain_jit(self, options):
         key = tuple(sorted((options or {}).items()))
-        jitted = self._plain.get(key)
-        if jitted is None:
-            jitted = self._plain[key] = eqx.filter_jit(self.fn, compiler_options=options)
+        with self._lock:  # the recovery's warm-up thread and the main thread may both ask
+            jitted = self._plain.get(key)
+            if jitted is None:
+                jitted = self._plain[key] = eqx.filter_jit(self.fn, **_jit_options(options))
         return jitted
 
     def _resolve(self, args, kwargs):
@@ -309,8 +321,9 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
         if any(isinstance(x, jax.core.Tracer) or getattr(x, "weak_type", False) for x in dynamic):
             return _PLAIN, None, None
         device = _call_device(dynamic)
+        options = compiler_options(device.platform)  # read at each call, as the plain path does: part of the key
         try:
-            key = (treedef, is_dynamic, static, avals, _settings(), device)
+            key = (treedef, is_dynamic, static, avals, _settings(), device, tuple(sorted((options or {}).items())))
             entry = self.memory.get(key)
         except TypeError:  # an unhashable static leaf: eqx.filter_jit says what it needs
             return _PLAIN, None, None
@@ -318,7 +331,7 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
             with self._lock:
                 entry = self.memory.get(key)
                 if entry is None:
-                    entry = self.memory[key] = self._entry(folder, treedef, is_dynamic, static, avals, device)
+                    entry = self.memory[key] = self._entry(folder, treedef, is_dynamic, static, avals, device, options)
         return entry, dynamic, key
 
     def __call__(self, *args, **kwargs):
@@ -331,6 +344,8 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
         try:
             return entry(dynamic)
         except Exception as error:  # noqa: BLE001  (e.g. a program of another platform: the plain path, for good)
+            if _nested_options_error(error):  # this call only (inside a caller's jit): the entry stays for the others
+                return self.plain(*args, **kwargs)
             self.memory[key] = _PLAIN
             warnings.warn(f"jaxtrack: the kept program of {self.qualname} failed ({type(error).__name__}: {error}); "
                           "traced instead", RuntimeWarning, stacklevel=3)
@@ -393,26 +408,26 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
         signature = self._signature(treedef, is_dynamic, static, avals)
         return None if signature is None else hashlib.sha256(signature).hexdigest()[:40]
 
-    def _entry(self, folder: pathlib.Path, treedef, is_dynamic, static, avals, device):
+    def _entry(self, folder: pathlib.Path, treedef, is_dynamic, static, avals, device, options=None):
         signature = self._signature(treedef, is_dynamic, static, avals)
         if signature is None:
             return _PLAIN
         path = folder / f"{self.name}-{_environment_tag()}-{hashlib.sha256(signature).hexdigest()[:40]}.jaxexport"
-        entry = self._load(path, signature, device)
+        entry = self._load(path, signature, device, options)
         if entry is not None:
             self.loaded += 1
             return entry
-        return self._export(path, signature, treedef, is_dynamic, static, avals, device)
+        return self._export(path, signature, treedef, is_dynamic, static, avals, device, options)
 
     @staticmethod
-    def _load(path: pathlib.Path, signature: bytes, device) -> _Entry | None:
+    def _load(path: pathlib.Path, signature: bytes, device, options=None) -> _Entry | None:
         """The program in `path`, or None when there is none, or the file is damaged or holds another signature (it is
         exported again and replaced). A file loaded is touched: `STALE_AFTER_S` counts from its last use."""
         try:
             stored = _loads(path.read_bytes())
             if stored["signature"] != signature:
                 return None
-            entry = _Entry(jax.export.deserialize(stored["exported"]), *stored["out"], device)
+            entry = _Entry(jax.export.deserialize(stored["exported"]), *stored["out"], device, options)
         except Exception:  # noqa: BLE001  (missing, truncated, foreign, or written by another jax)
             return None
         try:
@@ -421,7 +436,7 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
             pass
         return entry
 
-    def _export(self, path: pathlib.Path, signature: bytes, treedef, is_dynamic, static, avals, device):
+    def _export(self, path: pathlib.Path, signature: bytes, treedef, is_dynamic, static, avals, device, options=None):
         out_structure = []
 
         def flat(*dynamic_leaves):
@@ -438,7 +453,7 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
             warnings.warn(f"jaxtrack: {self.qualname} cannot be exported ({type(error).__name__}: {error}); "
                           "it is traced in every process", RuntimeWarning, stacklevel=3)
             return _PLAIN
-        entry = _Entry(exported, *out_structure[-1], device)
+        entry = _Entry(exported, *out_structure[-1], device, options)
         self.exported += 1
         if _source_environment() != _ENVIRONMENT:  # the source changed on disk since the import: this is not its program
             return entry

@@ -26,9 +26,9 @@ os.environ.setdefault("JAXTRACK_RECOVERY_WARMUP", "0")
 # exported step compiles as another XLA program than the plain one the other tests share, and a program loaded from
 # disk is not traced, which the trace-count tests would read as a missing trace. tests/test_exported.py turns it on.
 os.environ.setdefault("JAXTRACK_EXPORT_CACHE", "0")
-# The tracker's programs with XLA:CPU's older emitters ($JAXTRACK_FUSION_EMITTERS=0, `jaxtrack._exported`): they compile
-# in about 60 % of the time and run 15-30 % slower, and the suite's trackers run a few frames each. The product keeps
-# XLA's default.
+# The tracker's programs with XLA:CPU's older emitters ($JAXTRACK_FUSION_EMITTERS=0, `jaxtrack._exported`): XLA compiles
+# them in about two thirds of the time and they run 15-30 % slower, and the suite's trackers run a few frames each. The
+# product keeps XLA's default (tests/test_exported.py checks the split step's equality with it).
 os.environ.setdefault("JAXTRACK_FUSION_EMITTERS", "0")
 # The suite checks the tracker's defaults: the opt-in motion rounds of an experiment's shell are not inherited.
 os.environ.pop("JAXTRACK_MOTION_ROUNDS", None)

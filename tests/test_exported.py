@@ -413,3 +413,25 @@ def test_the_programs_compile_with_the_cpu_compiler_options(folder, monkeypatch)
         plain(m, 3 * x)  # a new options set: compiled again with them
     monkeypatch.setenv("JAXTRACK_FUSION_EMITTERS", "1")
     assert np.array_equal(np.asarray(plain(m, 3 * x)[1]), np.asarray(eqx.filter_jit(model)(m, 3 * x)[1]))
+
+
+def test_a_call_inside_a_callers_jit_with_concrete_arguments_runs_in_the_callers_program(folder, monkeypatch):
+    """XLA takes compile options only for a top-level program: a kept or plain call traced inside a caller's jit whose
+    arguments are all concrete (no tracer tells) runs without them, warns nothing and keeps its entry for later
+    top-level calls."""
+    import warnings
+
+    monkeypatch.setenv("JAXTRACK_FUSION_EMITTERS", "0")
+    m, x = Scaled(jnp.arange(3.0), 2), jnp.array([1.0, -2.0, 0.5])
+    expected = float(eqx.filter_jit(model)(m, x)[1])
+    for kept in (True, False):
+        monkeypatch.setattr(_exported, "_FOLDER", [folder if kept else None])
+        f = persistent_jit(model)
+        assert float(f(m, x)[1]) == expected  # top level first: the entry (or plain program) with the options
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            inside = jax.jit(lambda f=f: f(m, x)[1])()  # m and x closed over: concrete inside the caller's trace
+        assert float(inside) == pytest.approx(expected)
+        if kept:
+            assert all(entry is not _exported._PLAIN for entry in f.memory.values()) and len(f.memory) == 1
+        assert float(f(m, 2 * x)[1]) == pytest.approx(float(eqx.filter_jit(model)(m, 2 * x)[1]))
