@@ -69,6 +69,11 @@ def compiler_options(platform: str | None = None) -> dict | None:
     return dict(CPU_COMPILER_OPTIONS)
 
 
+def _options_key(options: dict | None) -> tuple:
+    """`options` as a hashable key (XLA's defaults: the empty tuple)."""
+    return tuple(sorted((options or {}).items()))
+
+
 def _jit_options(options: dict | None) -> dict:
     """jit's keyword for `options` (none for XLA's defaults: a jax without `compiler_options` still runs those)."""
     return {} if options is None else {"compiler_options": options}
@@ -292,8 +297,9 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
         the call: the backend and $JAXTRACK_FUSION_EMITTERS may be set after the import). Under a transformation or
         inside a caller's jit (tracers among the arguments) with none: XLA takes options only for a top-level program
         (the caller's)."""
-        traced = any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves((args, kwargs)))
-        options = None if traced else compiler_options()
+        options = compiler_options()
+        if options is not None and any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves((args, kwargs))):
+            options = None  # (XLA's defaults, the usual case, skip this walk over the arguments at every call)
         try:
             return self._plain_jit(options)(*args, **kwargs)
         except ValueError as error:  # a caller's trace whose arguments are all concrete: a nested jit after all
@@ -302,7 +308,7 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
             return self._plain_jit(None)(*args, **kwargs)
 
     def _plain_jit(self, options):
-        key = tuple(sorted((options or {}).items()))
+        key = _options_key(options)
         with self._lock:  # the recovery's warm-up thread and the main thread may both ask
             jitted = self._plain.get(key)
             if jitted is None:
@@ -323,7 +329,7 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
         device = _call_device(dynamic)
         options = compiler_options(device.platform)  # read at each call, as the plain path does: part of the key
         try:
-            key = (treedef, is_dynamic, static, avals, _settings(), device, tuple(sorted((options or {}).items())))
+            key = (treedef, is_dynamic, static, avals, _settings(), device, _options_key(options))
             entry = self.memory.get(key)
         except TypeError:  # an unhashable static leaf: eqx.filter_jit says what it needs
             return _PLAIN, None, None
