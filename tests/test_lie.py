@@ -10,10 +10,12 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from jaxtrack.geometry import (
+    se3_ad,
     se3_adjoint,
     se3_exp,
     se3_hat,
     se3_inverse,
+    se3_left_jacobian_inverse,
     se3_log,
     se3_vee,
     so3_exp,
@@ -78,6 +80,46 @@ def test_adjoint(a, b):
     T = se3_exp(jnp.asarray(a))
     lhs = T @ se3_exp(jnp.asarray(b)) @ se3_inverse(T)
     np.testing.assert_allclose(lhs, se3_exp(se3_adjoint(T) @ b), atol=1e-7)
+
+
+def _left_jacobian_series(xi):
+    """J_l(ξ) = Σ ad_ξⁿ / (n + 1)! (an entire series: 40 terms reach float64 for θ ≤ π), in numpy."""
+    ad = np.asarray(se3_ad(jnp.asarray(xi)))
+    term, total = np.eye(6), np.eye(6)
+    for n in range(1, 40):
+        term = term @ ad / (n + 1)
+        total = total + term
+    return total
+
+
+@settings(max_examples=60, deadline=None)
+@given(twists(max_angle=3.0))
+def test_left_jacobian_inverse_inverts_the_series_and_differentiates_the_log(xi):
+    """J_l⁻¹ in closed form (and its series below θ² = 0.25) against the inverse of the series J_l, and against
+    jax.jacfwd of ε ↦ log(exp(ε̂) exp(ξ̂)) at 0, in float64."""
+    got = np.asarray(se3_left_jacobian_inverse(jnp.asarray(xi)))
+    scale = 1.0 + np.abs(xi[:3]).max()  # the translation block grows with |v| (mm)
+    np.testing.assert_allclose(got @ _left_jacobian_series(xi), np.eye(6), atol=1e-9 * scale)
+    E = se3_exp(jnp.asarray(xi))
+    ref = np.asarray(jax.jacfwd(lambda e: se3_log(se3_exp(e) @ E))(jnp.zeros(6)))
+    np.testing.assert_allclose(got, ref, atol=1e-8 * scale)
+
+
+@pytest.mark.parametrize("angle", [0.0, 0.3, 0.5, 0.51, 2.0])
+def test_left_jacobian_inverse_is_smooth_across_its_series_threshold(angle):
+    """Value and derivative finite and continuous at the switch between the series and the closed form
+    (θ = 0.5), and finite at θ = 0."""
+    xi = jnp.asarray([30.0, -20.0, 10.0, 0.0, 0.0, angle])
+    d = jnp.asarray([0.0, 0.0, 0.0, 0.6, -0.8, 0.0]) * 1e-3
+    f = lambda x: jnp.sum(se3_left_jacobian_inverse(x) * jnp.arange(36.0).reshape(6, 6))
+    grad = np.asarray(jax.grad(f)(xi))
+    assert np.all(np.isfinite(grad))
+    if angle in (0.5, 0.51):  # across the threshold: the two forms meet
+        below = np.asarray(se3_left_jacobian_inverse(xi.at[5].set(0.5 - 1e-9)))
+        above = np.asarray(se3_left_jacobian_inverse(xi.at[5].set(0.5 + 1e-9)))
+        np.testing.assert_allclose(below, above, atol=1e-10)
+    fd = (f(xi + d) - f(xi - d)) / 2
+    np.testing.assert_allclose(float(grad @ np.asarray(d)), float(fd), rtol=1e-6, atol=1e-9)
 
 
 @settings(max_examples=30, deadline=None)

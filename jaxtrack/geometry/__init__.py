@@ -20,11 +20,13 @@ from ._chain import revolute_twist as revolute_twist
 from ._chain import rigid_model as rigid_model
 from ._lie import make_transform as make_transform
 from ._lie import rotation_to_quaternion as rotation_to_quaternion
+from ._lie import se3_ad as se3_ad
 from ._lie import se3_adjoint as se3_adjoint
 from ._lie import se3_compose as se3_compose
 from ._lie import se3_exp as se3_exp
 from ._lie import se3_hat as se3_hat
 from ._lie import se3_inverse as se3_inverse
+from ._lie import se3_left_jacobian_inverse as se3_left_jacobian_inverse
 from ._lie import se3_log as se3_log
 from ._lie import se3_vee as se3_vee
 from ._lie import so3_exp as so3_exp

@@ -221,6 +221,54 @@ def se3_adjoint(transform: ArrayLike):
     return jnp.concatenate([top, bottom], axis=0)
 
 
+@_vectorize("(6)->(6,6)")
+def se3_ad(xi: ArrayLike):
+    """The adjoint of the Lie algebra ad_ξ of a twist ξ = (v, ω): ad_ξ η = [ξ̂, η̂]ˇ, [[ω̂, v̂], [0, ω̂]].
+    (..., 6) -> (..., 6, 6)."""
+    v_hat, w_hat = so3_hat(xi[:3]), so3_hat(xi[3:])
+    top = jnp.concatenate([w_hat, v_hat], axis=1)
+    bottom = jnp.concatenate([jnp.zeros_like(w_hat), w_hat], axis=1)
+    return jnp.concatenate([top, bottom], axis=0)
+
+
+# Below this θ² the inverse left Jacobian's closed-form coefficients lose digits to cancellation (their
+# numerators are O(θ⁴)); the series to θ⁸ takes over (terms fall by ~θ²/4π² each: relative error ~1e-12 at the
+# threshold, far below float32's eps; in float64 the closed form is exact to ~1e-15 from there on).
+_JACOBIAN_TAYLOR_THETA_SQ = 0.25
+
+
+@_vectorize("(6)->(6,6)")
+def se3_left_jacobian_inverse(xi: ArrayLike):
+    """J_l(ξ)⁻¹ of SE(3): d log(exp(ε̂) exp(ξ̂)) / dε at ε = 0, for ξ = (v, ω) with θ = |ω| < 2π. (..., 6) -> (..., 6, 6).
+
+    J_l⁻¹ = Σ Bₙ/n! ad_ξⁿ (Bernoulli numbers) = f(ad_ξ) with f(x) = x / (eˣ − 1). ad_ξ has the eigenvalues 0
+    (semisimple) and ±iθ (double) and satisfies ad (ad² + θ²)² = 0, so f(ad) is the polynomial that matches f at
+    0 and f with its derivative at ±iθ: f(x) + x/2 is even, = G(x²), and J_l⁻¹ = I − ½ ad + c₁ ad² + c₂ ad⁴ with
+    1 + c₁ y + c₂ y² the Hermite interpolant of G at y = −θ², where G(−θ²) = F(θ) = (θ/2) cot(θ/2):
+    c₂ = (θ F′(θ)/2 − F + 1) / θ⁴ and c₁ = −F′(θ)/(2θ) + 2 c₂ θ², F′ = ½ cot(θ/2) − (θ/4) / sin²(θ/2).
+    Near θ = 0 (θ² < 0.25) the series c₁ = 1/12 − θ⁴/30240 − θ⁶/604800 − θ⁸/15966720, c₂ = −1/720 − θ²/15120
+    − θ⁴/403200 − θ⁶/11975040 − 691 θ⁸/261534873600 (from B₂..B₁₂) replaces the closed form, with the double
+    `where` that keeps derivatives finite.
+    """
+    omega = xi[3:]
+    theta_sq = jnp.dot(omega, omega)
+    use_taylor = theta_sq < _JACOBIAN_TAYLOR_THETA_SQ
+    safe_sq = jnp.where(use_taylor, jnp.ones_like(theta_sq), theta_sq)
+    theta = jnp.sqrt(safe_sq)
+    half = 0.5 * theta
+    cot = jnp.cos(half) / jnp.sin(half)
+    F = half * cot
+    dF = 0.5 * cot - 0.25 * theta / jnp.sin(half) ** 2
+    c2_closed = (0.5 * theta * dF - F + 1.0) / safe_sq**2
+    c1_closed = -dF / (2.0 * theta) + 2.0 * c2_closed * safe_sq
+    t2, t4, t6, t8 = theta_sq, theta_sq**2, theta_sq**3, theta_sq**4
+    c1 = jnp.where(use_taylor, 1 / 12 - t4 / 30240 - t6 / 604800 - t8 / 15966720, c1_closed)
+    c2 = jnp.where(use_taylor, -1 / 720 - t2 / 15120 - t4 / 403200 - t6 / 11975040 - t8 * (691 / 261534873600), c2_closed)
+    ad = se3_ad(xi)
+    ad2 = ad @ ad
+    return jnp.eye(6, dtype=ad.dtype) - 0.5 * ad + c1 * ad2 + c2 * (ad2 @ ad2)
+
+
 def transform_points(transform: jax.Array, points: jax.Array):
     """Apply T (..., 4, 4) to points (..., N, 3) or (..., 3); batch dims broadcast."""
     rot, trans = transform[..., :3, :3], transform[..., :3, 3]

@@ -31,6 +31,7 @@ class GaussNewtonState(eqx.Module):
         damping: Marquardt factor λ.
         num_steps: int32 steps taken (accepted or rejected).
         done: bool, a stopping test fired (or the start was non-finite).
+        fresh: bool, x is the start and not yet linearised (the loop's first pass does it, taking no step).
     """
 
     x: Any
@@ -40,6 +41,7 @@ class GaussNewtonState(eqx.Module):
     damping: jax.Array
     num_steps: jax.Array
     done: jax.Array
+    fresh: jax.Array
 
 
 class GaussNewtonResult(eqx.Module):
@@ -86,12 +88,15 @@ def damped_gauss_newton(
     A step solves (H + λ max(diag H, ε_H)) δ = −g; it is accepted when the cost does not increase
     (λ ×0.3), else rejected (λ ×10). Converged when a step has |δ|_∞ < atol + rtol·|x|, or when
     even huge damping cannot lower the cost (machine precision). One `lax.while_loop`: no
-    unrolling, vmappable, no recompilation.
+    unrolling, vmappable, no recompilation. Its first pass linearises x0 and takes no step (not
+    counted in `num_steps`), so `normal_equations` appears once in the program.
 
     Returns:
         GaussNewtonResult.
     """
-    H0, g0, cost0 = normal_equations(x0)
+    # The start is linearised by the loop's first pass (`fresh`), not by a call of its own here: `normal_equations`
+    # is then traced (and compiled) once, not twice; the pose solve's builder is half of the tracker's step program.
+    _, g0, cost0 = jax.eval_shape(normal_equations, x0)
     dtype = cost0.dtype
     eps = jnp.finfo(dtype).eps
     eye = jnp.eye(g0.shape[0], dtype=dtype)
@@ -104,38 +109,41 @@ def damped_gauss_newton(
         # largest entry only lifts entries that carry no information at the dtype's precision.
         damp = state.damping * jnp.maximum(diag, eps * (jnp.max(diag) + 1.0))
         delta = jnp.linalg.solve(state.hessian + damp * eye, -state.gradient)
-        x_new = retract(state.x, delta)
+        x_new = _select(state.fresh, state.x, retract(state.x, delta))  # the first pass: the start itself
         H_new, g_new, cost_new = normal_equations(x_new)
         # Accept within rounding of the cost: at the optimum the cost is flat to ~√eps in y, so a
         # strict decrease test would reject the last, accurate Gauss-Newton steps.
-        accept = jnp.isfinite(cost_new) & (cost_new <= state.cost * (1 + 16 * eps))
+        accept = state.fresh | (jnp.isfinite(cost_new) & (cost_new <= state.cost * (1 + 16 * eps)))
         # A step below tolerance ends the loop whether or not it lowered the cost: a rejected tiny
         # step means the cost sits at its rounding floor, and cost-change tests are unreliable there
         # (near a minimum the cost is flat to ~√eps in x).
         small_step = jnp.max(jnp.abs(delta)) < atol + rtol * magnitude(state.x)
         damping = jnp.where(accept, state.damping * 0.3, state.damping * 10.0)
+        # A non-finite start ends the loop at once; the caller reports it as NONFINITE.
+        done = jnp.where(state.fresh, ~jnp.isfinite(cost_new), small_step | (state.damping > 1e10))
         return GaussNewtonState(
             x=_select(accept, x_new, state.x),
             hessian=jnp.where(accept, H_new, state.hessian),
             gradient=jnp.where(accept, g_new, state.gradient),
             cost=jnp.where(accept, cost_new, state.cost),
-            damping=jnp.clip(damping, 1e-12, 1e16),
-            num_steps=state.num_steps + 1,
-            done=small_step | (state.damping > 1e10),
+            damping=jnp.where(state.fresh, state.damping, jnp.clip(damping, 1e-12, 1e16)),
+            num_steps=state.num_steps + jnp.where(state.fresh, 0, 1).astype(jnp.int32),
+            done=done,
+            fresh=jnp.zeros_like(state.fresh),
         )
 
     def cond(state: GaussNewtonState):
-        return (state.num_steps < max_steps) & ~state.done
+        return state.fresh | ((state.num_steps < max_steps) & ~state.done)
 
-    # A non-finite start ends the loop at once; the caller reports it as NONFINITE.
-    init = GaussNewtonState(
+    init = GaussNewtonState(  # H = I and g = 0 until the first pass: its (unused) step stays finite
         x=x0,
-        hessian=H0,
-        gradient=g0,
-        cost=cost0,
+        hessian=eye,
+        gradient=jnp.zeros(g0.shape, dtype),
+        cost=jnp.asarray(jnp.inf, dtype),
         damping=jnp.asarray(1e-3, dtype),
         num_steps=jnp.asarray(0, jnp.int32),
-        done=~jnp.isfinite(cost0),
+        done=jnp.asarray(False),
+        fresh=jnp.asarray(True),
     )
     final = jax.lax.while_loop(cond, body, init)
     leaves_finite = [jnp.all(jnp.isfinite(v)) for v in jax.tree_util.tree_leaves(final.x)]
