@@ -105,21 +105,24 @@ def test_left_jacobian_inverse_inverts_the_series_and_differentiates_the_log(xi)
     np.testing.assert_allclose(got, ref, atol=1e-8 * scale)
 
 
-@pytest.mark.parametrize("angle", [0.0, 0.3, 0.5, 0.51, 2.0])
-def test_left_jacobian_inverse_is_smooth_across_its_series_threshold(angle):
-    """Value and derivative finite and continuous at the switch between the series and the closed form
-    (θ = 0.5), and finite at θ = 0."""
-    xi = jnp.asarray([30.0, -20.0, 10.0, 0.0, 0.0, angle])
-    d = jnp.asarray([0.0, 0.0, 0.0, 0.6, -0.8, 0.0]) * 1e-3
+def test_left_jacobian_inverse_meets_itself_across_its_series_threshold():
+    """At θ² = 0.25 the series (below) and the closed form (from there on) agree to the series' truncation
+    (~2e-11 relative in the entries that |v| scales) in value, and the derivative along ω (which moves θ across the switch) matches central
+    differences; at θ = 0 the derivative is finite."""
+    threshold = 0.25
+    v = np.array([30.0, -20.0, 10.0])
+    axis = np.array([0.6, -0.8, 0.0])
+    below, above = (np.concatenate([v, axis * np.sqrt(t)]) for t in (np.nextafter(threshold, 0.0), threshold))
+    assert np.dot(below[3:], below[3:]) < threshold <= np.dot(above[3:], above[3:])
+    np.testing.assert_allclose(np.asarray(se3_left_jacobian_inverse(jnp.asarray(below))),
+                               np.asarray(se3_left_jacobian_inverse(jnp.asarray(above))), rtol=1e-10, atol=1e-10)
     f = lambda x: jnp.sum(se3_left_jacobian_inverse(x) * jnp.arange(36.0).reshape(6, 6))
-    grad = np.asarray(jax.grad(f)(xi))
-    assert np.all(np.isfinite(grad))
-    if angle in (0.5, 0.51):  # across the threshold: the two forms meet
-        below = np.asarray(se3_left_jacobian_inverse(xi.at[5].set(0.5 - 1e-9)))
-        above = np.asarray(se3_left_jacobian_inverse(xi.at[5].set(0.5 + 1e-9)))
-        np.testing.assert_allclose(below, above, atol=1e-10)
-    fd = (f(xi + d) - f(xi - d)) / 2
-    np.testing.assert_allclose(float(grad @ np.asarray(d)), float(fd), rtol=1e-6, atol=1e-9)
+    for xi in (jnp.asarray(above), jnp.asarray(np.concatenate([v, np.zeros(3)]))):
+        d = jnp.asarray(np.concatenate([np.zeros(3), axis])) * 1e-5  # along ω: θ changes, across the switch at 0.5
+        grad = np.asarray(jax.grad(f)(xi))
+        assert np.all(np.isfinite(grad))
+        fd = (f(xi + d) - f(xi - d)) / 2
+        np.testing.assert_allclose(float(grad @ np.asarray(d)), float(fd), rtol=1e-6, atol=1e-12)
 
 
 @settings(max_examples=30, deadline=None)

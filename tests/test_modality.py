@@ -278,7 +278,7 @@ def test_pose_prior_steadies_a_weakly_observed_direction():
 
 
 def test_pose_prior_far_from_its_anchor_agrees_with_the_autodiff_solver():
-    """An anchor 17° and 40 mm from the start: the Gauss-Newton steps (the prior's Jacobian in closed form,
+    """An anchor 15° and 46 mm from the start: the Gauss-Newton steps (the prior's Jacobian in closed form,
     J_l⁻¹ Ad) stop where optimistix's Levenberg-Marquardt on the residual (its Jacobian by autodiff) does."""
     scene, corr = _scene_rows(noise_px=1.0)
     model = jt.rigid_model(jnp.float64)

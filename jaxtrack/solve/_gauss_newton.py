@@ -95,7 +95,8 @@ def damped_gauss_newton(
         GaussNewtonResult.
     """
     # The start is linearised by the loop's first pass (`fresh`), not by a call of its own here: `normal_equations`
-    # is then traced (and compiled) once, not twice; the pose solve's builder is half of the tracker's step program.
+    # then appears once in the compiled program, not twice (traced twice: here for its shapes only); the pose solve
+    # was half of the tracker's step program.
     _, g0, cost0 = jax.eval_shape(normal_equations, x0)
     dtype = cost0.dtype
     eps = jnp.finfo(dtype).eps
