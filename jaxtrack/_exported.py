@@ -399,8 +399,12 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
         # name among the pickled strings; a false match only costs the disk cache) is not kept.
         known = tuple(sorted((name, cls.__module__, cls.__qualname__) for name, cls in _MODALITIES.items() if _is_known(cls)))
         unknown = [name for name, cls in _MODALITIES.items() if not _is_known(cls)]
+        # The shapes as one string: pickled as tuples they would share memo entries where the caller's arrays share
+        # shape objects (a device array's outputs do, numpy zeros of the same shapes do not), and equal arguments
+        # would name different files (`Tracker.start` compiles the first step on zeros shaped as its state).
+        shapes = ";".join(f"{'x'.join(str(int(d)) for d in shape)}:{dtype}" for shape, dtype in avals)
         try:
-            signature = _dumps((self.qualname, _ENVIRONMENT, _settings(), known, treedef, is_dynamic, static, avals))
+            signature = _dumps((self.qualname, _ENVIRONMENT, _settings(), known, treedef, is_dynamic, static, shapes))
         except Exception:  # noqa: BLE001  (not picklable, or code the signature cannot see: no disk cache for it)
             return None
         if any(name.encode() in signature for name in unknown):
