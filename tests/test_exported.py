@@ -320,6 +320,63 @@ def test_compiled_ahead_in_threads_the_calls_compile_nothing(folder):
     assert produce.outputs_like(m, x) is None and produce.compile(m, x) is False
 
 
+def test_the_first_step_compiled_from_start_on_is_the_one_the_step_runs(folder, monkeypatch):
+    """`Tracker.start` compiles the first step's programs in a background thread (`_start_precompile`): shapes from the
+    start programs' entries, the host inputs' from an empty region. The step then compiles nothing of its own: as many
+    XLA compiles and traces of `track_step` as with the precompile off, and the same poses (a signature guessed wrong
+    would compile twice). XLA's on-disk cache is off: every compile is counted."""
+    from jax._src import dispatch, monitoring
+
+    import jaxtrack as jt
+    from jaxtrack.render import make_mesh
+    from jaxtrack.synth import SynthConfig, render_sequence
+    from jaxtrack.track import Tracker, TrackerConfig
+    from jaxtrack.track import _tracker as tracker_module
+    from jaxtrack.track._step import track_step
+
+    cfg = SynthConfig(object="box", appearance="photo", texture_photo="astronaut", size_mm=160, motion="random",
+                      step_px=3, step_deg=1.5, frames=3, width=128, height=96, focal=140, background="coffee", seed=5)
+    seq = render_sequence(cfg)
+    mesh, camera = make_mesh(seq["mesh"].vertices, seq["mesh"].faces), jt.make_camera(seq["K"], 128, 96)
+    images, T0 = seq["images"][0].astype(np.uint8), seq["T_cam_obj"][0][0]
+    kept = (tracker_module._track_step_jit, tracker_module._start_frame_jit, tracker_module._initial_modality_states,
+            tracker_module._initial_appearance_jit)
+    monkeypatch.setattr(os, "cpu_count", lambda: 2)  # one camera, two cores: start_frame beside track_step
+    compiles = []
+
+    def count(event, seconds, **kwargs):
+        if event == dispatch.BACKEND_COMPILE_EVENT:
+            compiles.append(seconds)
+
+    def run(precompile: bool):
+        for wrapped in kept:  # as in a new process
+            monkeypatch.setattr(wrapped, "memory", {})
+        compiles.clear()
+        traces = eqx.debug.get_num_traces(track_step)
+        tracker = Tracker(mesh, camera, config=TrackerConfig(cues=("region", "sift")))
+        tracker.precompile_first_step = precompile
+        state = tracker.start(images[0], T0)
+        assert (tracker._precompile is not None) == precompile
+        poses = []
+        for k in (1, 2):
+            state, result, _ = tracker.step(state, images[k])
+            poses.append(np.asarray(result.T_world_root))
+        return np.stack(poses), len(compiles), eqx.debug.get_num_traces(track_step) - traces
+
+    cache_was = jax.config.jax_enable_compilation_cache
+    jax.config.update("jax_enable_compilation_cache", False)
+    monitoring.register_event_duration_secs_listener(count)
+    try:
+        run(False)  # the small programs outside `kept` (boxes, raster plans) compile once, here
+        off = run(False)
+        on = run(True)
+    finally:
+        monitoring.unregister_event_duration_listener(count)
+        jax.config.update("jax_enable_compilation_cache", cache_was)
+    assert np.array_equal(on[0], off[0])
+    assert on[1:] == off[1:], (on[1:], off[1:])  # (compiles, track_step traces)
+
+
 def test_dispatches_async_only_for_kept_programs(folder, monkeypatch):
     double = persistent_jit(lambda x: 2.0 * x)
     x = jnp.ones((3,), jnp.float32)

@@ -292,6 +292,8 @@ class Tracker:
             ($JAXTRACK_OVERLAP_HOST=0). Only where that program dispatches asynchronously (a kept program,
             `jaxtrack.enable_compilation_cache`). The poses are the same either way.
         warm_up_recovery: compile the recovery search in a background thread after the first frame.
+        precompile_first_step: compile the first step's programs in a background thread from `start` on, beside the
+            start's own (True; $JAXTRACK_PRECOMPILE=0 sets it False); only with the on-disk program cache (kept programs).
         crop_follows_motion: the next step's windows hold the box at t and the box moved on by the last step's motion
             (plus the margin and half that motion) instead of the box at t plus 1.5x the motion on every side
             (`_crop_boxes`); True by default, $JAXTRACK_CROP_FOLLOWS_MOTION=0 sets it False.
@@ -332,6 +334,10 @@ class Tracker:
         self.recoveries = 0  # frames RECOVERED since `start`
         self._recovery_warmup: threading.Thread | None = None
         self._compiled: set = set()  # (crop shape, fixed resolution, plan) whose two step programs `_compile_both` made
+        # The first step's programs compile in a background thread from `start` on (`_start_precompile`), beside the
+        # start's own small programs; $JAXTRACK_PRECOMPILE=0: when the first step needs them.
+        self.precompile_first_step = os.environ.get("JAXTRACK_PRECOMPILE", "1") != "0"
+        self._precompile: threading.Thread | None = None
         # Compile the recovery program in the background after the first frame (`_warm_up_recovery`);
         # $JAXTRACK_RECOVERY_WARMUP=0 compiles it when first needed instead (the test suite: most of its trackers
         # never lose the object, and each compile costs a few seconds of its two cores).
@@ -586,16 +592,19 @@ class Tracker:
                 scale = 1.0 if scales is None else float(np.max(scales))
                 texel = max(0.25, scale * depth / float(rig.K[0, 0, 0]))
             self.atlas = make_texture_atlas(self.mesh, texel_mm=texel)
-        sil, appearance = self._initial_appearance(to_device(frames), T, theta, offsets, crop_shape, scales)
-        # The first frame's pose is known: every modality learns its state there (the level set's local
-        # densities, so the next frame's first iterations use densities of the right regions, Section IV).
-        setup = self.setup()
         # Frames t live in the state as they came: 8-bit frames stay uint8 (a quarter of the bytes to copy and
         # move), others in the tracker's dtype. Later frames are cast to the same dtype: one program.
         self.frame_dtype = np.uint8 if frames.dtype == np.uint8 else np.dtype(self.dtype)
         occluder_depth = None if occluder_depth is None else to_device(occluder_depth, self.dtype)
-        states = _initial_modality_states(setup, to_device(frames, self.dtype), to_device(offsets), T, theta,
-                                          self.params_for(crop_shape), crop_shape, _as_array(scales), occluder_depth)
+        setup = self.setup()
+        appearance_args = self._initial_appearance_args(to_device(frames), T, theta, offsets, crop_shape, scales)
+        # The first frame's pose is known: every modality learns its state there (the level set's local
+        # densities, so the next frame's first iterations use densities of the right regions, Section IV).
+        states_args = (setup, to_device(frames, self.dtype), to_device(offsets), T, theta, self.params_for(crop_shape),
+                       crop_shape, _as_array(scales), occluder_depth)
+        self._start_precompile(frames, T, theta, offsets, crop_shape, scales, occluder_depth, appearance_args, states_args)
+        sil, appearance = _initial_appearance_jit(*appearance_args)
+        states = _initial_modality_states(*states_args)
         self.keyframes = None
         if self.recovery_modality() is not None and self.config.recovery.keyframes is not None:
             self.keyframes = KeyframeModel(np.asarray(self.mesh.vertices), np.asarray(self.mesh.faces),
@@ -607,15 +616,69 @@ class Tracker:
             modalities=states, occluder_depth=occluder_depth,
         )
 
-    def _initial_appearance(self, frames, T, theta, offsets=None, crop_shape=None, scales=None):
-        """Silhouettes and appearance at the first pose; observed on the working-resolution crops when `scales`
-        is given (native crops: on the frames, whose pixels the crops are)."""
+    def _initial_appearance_args(self, frames, T, theta, offsets=None, crop_shape=None, scales=None) -> tuple:
+        """The arguments of `_initial_appearance_jit`: silhouettes and appearance at the first pose, observed on the
+        working-resolution crops when `scales` is given (native crops: on the frames, whose pixels the crops are)."""
         setup = self.setup()
         params = self.params_for((self.cameras.height, self.cameras.width)).occlusion
         if scales is None:
-            return _initial_appearance_jit(setup, frames, T, theta, params)
-        return _initial_appearance_jit(setup, frames, T, theta, params, to_device(offsets), tuple(crop_shape),
-                                       to_device(scales))
+            return setup, frames, T, theta, params
+        return setup, frames, T, theta, params, to_device(offsets), tuple(crop_shape), to_device(scales)
+
+    def _start_precompile(self, frames, T, theta, offsets, crop_shape, scales, occluder_depth, appearance_args,
+                          states_args) -> None:
+        """Compile the first step's programs in a background thread while `start` runs its own (`precompile_first_step`).
+
+        The first `step` from this pose takes the windows `start` takes (the same boxes, no motion yet), so its
+        signature is known here; the state's shapes come from the start programs' entries (`outputs_like`: traced
+        and exported, or loaded, not run), the host inputs' from the host modalities run on an empty region (a
+        scratch cache: nothing carries over). Only for kept programs (`persistent_jit` with the on-disk cache); the
+        step joins the thread before it calls them. A compile that fails here is left to the step's call."""
+        self._join_precompile()  # a restart's (`start` again) compile after the last one's, not beside it
+        setup = self.setup()
+        signature = (crop_shape, scales is None, id(setup.window_plan))
+        if not self.precompile_first_step or signature in self._compiled:
+            return
+        sil_like = _initial_appearance_jit.outputs_like(*appearance_args)
+        states_like = _initial_modality_states.outputs_like(*states_args)
+        if sil_like is None or states_like is None:  # the plain path: each program compiles at its first call
+            return
+        H, W = self.cameras.height, self.cameras.width
+        state_like = TrackerState(
+            T_world_root=T, theta=theta, images=self._frames_as_state(frames),
+            data_weight=np.ones((self.num_cameras, H, W), self.dtype), visible=sil_like[0], appearance=sil_like[1],
+            modalities=states_like, occluder_depth=occluder_depth)
+        saved, self.host_cache = self.host_cache, {}
+        try:
+            host_like = self.host_inputs(state_like, frames)  # frame t+1's shape: the first frame's
+        finally:
+            self.host_cache = saved
+        frames_j = to_device(self._frames_as_state(frames))
+        args = (setup, state_like, frames_j, to_device(offsets), self.params_for(crop_shape), crop_shape, _as_array(scales))
+        overlaps = self._overlaps_host()
+
+        def compile_first_step():
+            try:
+                early_like = _start_frame_jit.outputs_like(*args) if overlaps else None
+                inner = None
+                if early_like is not None:  # `_compile_both`'s pair: start_frame beside track_step
+                    inner = threading.Thread(target=_start_frame_jit.compile, args=args, daemon=True,
+                                             name="jaxtrack-start-frame-compile")
+                    inner.start()
+                _track_step_jit.compile(*args[:3], host_like, *args[3:], early_like)
+                if inner is not None:
+                    inner.join()
+            except Exception:  # noqa: BLE001, S110  (the step's own call compiles, and reports what fails)
+                pass
+
+        self._compiled.add(signature)
+        self._precompile = threading.Thread(target=compile_first_step, daemon=True, name="jaxtrack-first-step-compile")
+        self._precompile.start()
+
+    def _join_precompile(self) -> None:
+        if self._precompile is not None:
+            self._precompile.join()
+            self._precompile = None
 
     def _frames_as_state(self, frames: np.ndarray) -> np.ndarray:
         """Checked frames in the state's image dtype (`frame_dtype`, fixed by `start`)."""
@@ -719,6 +782,7 @@ class Tracker:
         The host inputs (`host_inputs`, unless given) are made after `start_frame` is dispatched where the host's
         work can overlap the device's (`overlap_host`). Returns (state, result, seconds spent making host inputs)."""
         offsets_j, scales_j = to_device(offsets), _as_array(scales)
+        self._join_precompile()  # the first step's programs, compiled from `start` on
         host_s = 0.0
         for _ in range(3):
             setup = self.setup()
@@ -835,7 +899,8 @@ class Tracker:
         return _recover_pose_jit(*self._recovery_args(state, frames_j, jnp.stack([reference, good]), params))
 
     def join_background(self) -> None:
-        """Wait for the background compile of the recovery program (call before the process exits)."""
+        """Wait for the background compiles (the first step's, the recovery program's; call before the process exits)."""
+        self._join_precompile()
         if self._recovery_warmup is not None:
             self._recovery_warmup.join()
 
