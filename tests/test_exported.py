@@ -227,6 +227,23 @@ def test_the_tracker_setups_signature_is_the_same_in_every_process():
     assert digests[0] == digests[1] and digests[0] != "None"
 
 
+def _small_box_scene(dtype):
+    """A 3-frame textured box at 128x96 (mesh, camera, frames of `dtype`, first pose) and the tracker's kept
+    programs that a new process starts without (`memory` reset by the tests)."""
+    import jaxtrack as jt
+    from jaxtrack.render import make_mesh
+    from jaxtrack.synth import SynthConfig, render_sequence
+    from jaxtrack.track import _tracker as tracker_module
+
+    cfg = SynthConfig(object="box", appearance="photo", texture_photo="astronaut", size_mm=160, motion="random",
+                      step_px=3, step_deg=1.5, frames=3, width=128, height=96, focal=140, background="coffee", seed=5)
+    seq = render_sequence(cfg)
+    mesh, camera = make_mesh(seq["mesh"].vertices, seq["mesh"].faces), jt.make_camera(seq["K"], 128, 96)
+    kept = (tracker_module._track_step_jit, tracker_module._start_frame_jit, tracker_module._initial_modality_states,
+            tracker_module._initial_appearance_jit)
+    return mesh, camera, seq["images"][0].astype(dtype), seq["T_cam_obj"][0][0], kept
+
+
 def test_a_tracker_with_the_cache_tracks_as_without_and_a_new_process_traces_nothing(folder, monkeypatch):
     """With SIFT (a modality that reads host inputs) and a kept, asynchronously dispatched program, `Tracker.step`
     runs `start_frame` (crops, render at χ_t) as a program of its own while the host matches keypoints, then
@@ -234,21 +251,11 @@ def test_a_tracker_with_the_cache_tracks_as_without_and_a_new_process_traces_not
     default emitters (the product's; the suite's older ones, $JAXTRACK_FUSION_EMITTERS=0, round the split programs
     differently: 1.2e-4 in the pose matrix here)."""
     monkeypatch.setenv("JAXTRACK_FUSION_EMITTERS", "1")
-    import jaxtrack as jt
-    from jaxtrack.render import make_mesh
-    from jaxtrack.synth import SynthConfig, render_sequence
     from jaxtrack.track import Tracker, TrackerConfig
     from jaxtrack.track import _tracker as tracker_module
     from jaxtrack.track._step import track_step
 
-    cfg = SynthConfig(object="box", appearance="photo", texture_photo="astronaut", size_mm=160, motion="random",
-                      step_px=3, step_deg=1.5, frames=3, width=128, height=96, focal=140, background="coffee", seed=5)
-    seq = render_sequence(cfg)
-    mesh, camera = make_mesh(seq["mesh"].vertices, seq["mesh"].faces), jt.make_camera(seq["K"], 128, 96)
-    images, T0 = seq["images"][0].astype(np.float32), seq["T_cam_obj"][0][0]
-
-    kept = (tracker_module._track_step_jit, tracker_module._start_frame_jit, tracker_module._initial_modality_states,
-            tracker_module._initial_appearance_jit)
+    mesh, camera, images, T0, kept = _small_box_scene(np.float32)
     for wrapped in kept:  # as in a new process
         monkeypatch.setattr(wrapped, "memory", {})
     monkeypatch.setattr(os, "cpu_count", lambda: 2)  # a core left for the device beside the one camera's detection
@@ -327,20 +334,10 @@ def test_the_first_step_compiled_from_start_on_is_the_one_the_step_runs(folder, 
     would compile twice). XLA's on-disk cache is off: every compile is counted."""
     from jax._src import dispatch, monitoring
 
-    import jaxtrack as jt
-    from jaxtrack.render import make_mesh
-    from jaxtrack.synth import SynthConfig, render_sequence
     from jaxtrack.track import Tracker, TrackerConfig
-    from jaxtrack.track import _tracker as tracker_module
     from jaxtrack.track._step import track_step
 
-    cfg = SynthConfig(object="box", appearance="photo", texture_photo="astronaut", size_mm=160, motion="random",
-                      step_px=3, step_deg=1.5, frames=3, width=128, height=96, focal=140, background="coffee", seed=5)
-    seq = render_sequence(cfg)
-    mesh, camera = make_mesh(seq["mesh"].vertices, seq["mesh"].faces), jt.make_camera(seq["K"], 128, 96)
-    images, T0 = seq["images"][0].astype(np.uint8), seq["T_cam_obj"][0][0]
-    kept = (tracker_module._track_step_jit, tracker_module._start_frame_jit, tracker_module._initial_modality_states,
-            tracker_module._initial_appearance_jit)
+    mesh, camera, images, T0, kept = _small_box_scene(np.uint8)
     monkeypatch.setattr(os, "cpu_count", lambda: 2)  # one camera, two cores: start_frame beside track_step
     compiles = []
 
