@@ -140,9 +140,14 @@ class _Unpickler(pickle.Unpickler):
         return _MISSING
 
 
-def _dumps(obj) -> bytes:
+def _dumps(obj, fast: bool = False) -> bytes:
+    """Pickled `obj`; `fast`: without pickle's memo, so the bytes depend on values alone, not on which equal objects
+    are one object (a signature: an interned "sift" in one configuration's cues and a split string in another's named
+    different files). A self-referencing object then fails to pickle (no disk cache for that signature)."""
     buffer = io.BytesIO()
-    _Pickler(buffer, protocol=4).dump(obj)
+    pickler = _Pickler(buffer, protocol=4)
+    pickler.fast = fast
+    pickler.dump(obj)
     return buffer.getvalue()
 
 
@@ -404,7 +409,7 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
         # would name different files (`Tracker.start` compiles the first step on zeros shaped as its state).
         shapes = ";".join(f"{'x'.join(str(int(d)) for d in shape)}:{dtype}" for shape, dtype in avals)
         try:
-            signature = _dumps((self.qualname, _ENVIRONMENT, _settings(), known, treedef, is_dynamic, static, shapes))
+            signature = _dumps((self.qualname, _ENVIRONMENT, _settings(), known, treedef, is_dynamic, static, shapes), fast=True)
         except Exception:  # noqa: BLE001  (not picklable, or code the signature cannot see: no disk cache for it)
             return None
         if any(name.encode() in signature for name in unknown):

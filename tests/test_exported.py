@@ -331,7 +331,9 @@ def test_the_first_step_compiled_from_start_on_is_the_one_the_step_runs(folder, 
     """`Tracker.start` compiles the first step's programs in a background thread (`_start_precompile`): shapes from the
     start programs' entries, the host inputs' from an empty region. The step then compiles nothing of its own: as many
     XLA compiles and traces of `track_step` as with the precompile off, and the same poses (a signature guessed wrong
-    would compile twice). XLA's on-disk cache is off: every compile is counted."""
+    would compile twice), and both programs are compiled before the step runs. XLA's on-disk cache is off: every
+    compile is counted. Inside a thread-local jax setting the thread compiles nothing (it would compile another
+    program) and the step compiles as before."""
     from jax._src import dispatch, monitoring
 
     from jaxtrack.track import Tracker, TrackerConfig
@@ -354,6 +356,10 @@ def test_the_first_step_compiled_from_start_on_is_the_one_the_step_runs(folder, 
         tracker.precompile_first_step = precompile
         state = tracker.start(images[0], T0)
         assert (tracker._precompile is not None) == precompile
+        if precompile:  # done before the first step: both programs compiled, not left to the step's calls
+            tracker.join_background()
+            entries = [*kept[0].memory.values(), *kept[1].memory.values()]
+            assert len(entries) == 2 and all(entry.compiled for entry in entries)
         poses = []
         for k in (1, 2):
             state, result, _ = tracker.step(state, images[k])
@@ -372,6 +378,11 @@ def test_the_first_step_compiled_from_start_on_is_the_one_the_step_runs(folder, 
         jax.config.update("jax_enable_compilation_cache", cache_was)
     assert np.array_equal(on[0], off[0])
     assert on[1:] == off[1:], (on[1:], off[1:])  # (compiles, track_step traces)
+    tracker = Tracker(mesh, camera, config=TrackerConfig(cues=("region", "sift")))
+    with jax.default_matmul_precision("float32"):  # seen by this thread only
+        tracker.start(images[0], T0)
+        tracker.join_background()
+        assert not tracker._compiled  # the thread did not compile under other settings; the step will
 
 
 def test_dispatches_async_only_for_kept_programs(folder, monkeypatch):

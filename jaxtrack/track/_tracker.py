@@ -33,6 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._device import to_device
+from .._exported import _settings as jax_settings  # the trace settings a kept program is keyed by
 from .._exported import persistent_jit
 from .._status import Status
 from ..cues.flow import articulated_params, rigid_params
@@ -333,7 +334,7 @@ class Tracker:
         self._boxes_memo = None  # (pose bytes, (C, 4) boxes) of the last projected pose (`_boxes_at`)
         self.recoveries = 0  # frames RECOVERED since `start`
         self._recovery_warmup: threading.Thread | None = None
-        self._compiled: set = set()  # (crop shape, fixed resolution, plan) whose two step programs `_compile_both` made
+        self._compiled: set = set()  # (crop shape, fixed resolution, plan) whose step programs are compiled (`_compile_both`, `_start_precompile`)
         # The first step's programs compile in a background thread from `start` on (`_start_precompile`), beside the
         # start's own small programs; $JAXTRACK_PRECOMPILE=0: when the first step needs them.
         self.precompile_first_step = os.environ.get("JAXTRACK_PRECOMPILE", "1") != "0"
@@ -566,6 +567,9 @@ class Tracker:
         `occluder_depth`: (C, H, W) depth (mm, inf: none) of the other objects of a joint run (`JointTracker`),
         kept in the state (`TrackerState.occluder_depth`); None for one object.
 
+        With the on-disk program cache, the first step's programs start compiling in a background thread here
+        (`precompile_first_step`); `step` waits for them, and `join_background` where no step follows.
+
         Raises:
             ValueError: malformed frames or pose, or an object behind a camera / outside every image.
         """
@@ -632,8 +636,10 @@ class Tracker:
         The first `step` from this pose takes the windows `start` takes (the same boxes, no motion yet), so its
         signature is known here; the state's shapes come from the start programs' entries (`outputs_like`: traced
         and exported, or loaded, not run), the host inputs' from the host modalities run on an empty region (a
-        scratch cache: nothing carries over). Only for kept programs (`persistent_jit` with the on-disk cache); the
-        step joins the thread before it calls them. A compile that fails here is left to the step's call."""
+        scratch cache: nothing carries over). Only for kept programs (`persistent_jit` with the on-disk cache). The
+        thread compiles only under this thread's jax settings (jax's context managers are thread-local: a
+        `default_matmul_precision` or `default_device` block would make it compile another program) and marks the
+        signature compiled only when every compile succeeded; otherwise the step compiles as it did before."""
         self._join_precompile()  # a restart's (`start` again) compile after the last one's, not beside it
         setup = self.setup()
         signature = (crop_shape, scales is None, id(setup.window_plan))
@@ -651,27 +657,37 @@ class Tracker:
         saved, self.host_cache = self.host_cache, {}
         try:
             host_like = self.host_inputs(state_like, frames)  # frame t+1's shape: the first frame's
+        except Exception:  # noqa: BLE001  (a host modality that fails here fails in the step, which reports it)
+            return
         finally:
             self.host_cache = saved
         frames_j = to_device(self._frames_as_state(frames))
         args = (setup, state_like, frames_j, to_device(offsets), self.params_for(crop_shape), crop_shape, _as_array(scales))
         overlaps = self._overlaps_host()
+        settings = (jax_settings(), jax.config.jax_default_device)
 
         def compile_first_step():
+            if (jax_settings(), jax.config.jax_default_device) != settings:
+                return
+            done = [True]
+            inner = None
             try:
                 early_like = _start_frame_jit.outputs_like(*args) if overlaps else None
-                inner = None
                 if early_like is not None:  # `_compile_both`'s pair: start_frame beside track_step
-                    inner = threading.Thread(target=_start_frame_jit.compile, args=args, daemon=True,
-                                             name="jaxtrack-start-frame-compile")
+                    def compile_start_frame():
+                        done[0] = _start_frame_jit.compile(*args)
+
+                    inner = threading.Thread(target=compile_start_frame, daemon=True, name="jaxtrack-start-frame-compile")
                     inner.start()
-                _track_step_jit.compile(*args[:3], host_like, *args[3:], early_like)
+                compiled = _track_step_jit.compile(*args[:3], host_like, *args[3:], early_like)
+            except Exception:  # noqa: BLE001  (the step's own call compiles, and reports what fails)
+                compiled = False
+            finally:
                 if inner is not None:
                     inner.join()
-            except Exception:  # noqa: BLE001, S110  (the step's own call compiles, and reports what fails)
-                pass
+            if compiled and done[0]:
+                self._compiled.add(signature)  # read by the step only after it joined this thread
 
-        self._compiled.add(signature)
         self._precompile = threading.Thread(target=compile_first_step, daemon=True, name="jaxtrack-first-step-compile")
         self._precompile.start()
 
