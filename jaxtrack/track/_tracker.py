@@ -132,6 +132,32 @@ def _as_array(scales):
     return None if scales is None else to_device(scales)
 
 
+def _compile_step_programs(start_args: tuple, early_like, make_host) -> tuple:
+    """Compile (or load from the on-disk cache) the step's kept programs without running them: `start_frame`'s on
+    `start_args` in a thread while this one makes the host inputs (`make_host()`) and compiles `track_step`'s on
+    them and `early_like` (zeros shaped as `start_frame`'s outputs; None: the one program that runs it inside). XLA
+    releases the GIL: a warm cache's two loads, 0.58 + 0.54 s on this 2-core CPU, take about the time of one.
+
+    Returns:
+        (the host inputs, whether every compile succeeded: False where a program runs `eqx.filter_jit` or failed).
+    """
+    start_frame_compiled = [True]
+    thread = None
+    if early_like is not None:
+        def compile_start_frame():
+            start_frame_compiled[0] = _start_frame_jit.compile(*start_args)
+
+        thread = threading.Thread(target=compile_start_frame, daemon=True, name="jaxtrack-start-frame-compile")
+        thread.start()
+    try:
+        host = make_host()
+        compiled = _track_step_jit.compile(*start_args[:3], host, *start_args[3:], early_like)
+    finally:
+        if thread is not None:
+            thread.join()
+    return host, compiled and start_frame_compiled[0]
+
+
 @persistent_jit
 def _initial_modality_states(setup: TrackerSetup, frames, offsets, T, theta, params: TrackerParams, crop_shape,
                              scales=None, occluder_depth=None):
@@ -606,7 +632,7 @@ class Tracker:
         # densities, so the next frame's first iterations use densities of the right regions, Section IV).
         states_args = (setup, to_device(frames, self.dtype), to_device(offsets), T, theta, self.params_for(crop_shape),
                        crop_shape, _as_array(scales), occluder_depth)
-        self._start_precompile(frames, T, theta, offsets, crop_shape, scales, occluder_depth, appearance_args, states_args)
+        self._start_precompile(frames, appearance_args, states_args)
         sil, appearance = _initial_appearance_jit(*appearance_args)
         states = _initial_modality_states(*states_args)
         self.keyframes = None
@@ -629,8 +655,7 @@ class Tracker:
             return setup, frames, T, theta, params
         return setup, frames, T, theta, params, to_device(offsets), tuple(crop_shape), to_device(scales)
 
-    def _start_precompile(self, frames, T, theta, offsets, crop_shape, scales, occluder_depth, appearance_args,
-                          states_args) -> None:
+    def _start_precompile(self, frames, appearance_args: tuple, states_args: tuple) -> None:
         """Compile the first step's programs in a background thread while `start` runs its own (`precompile_first_step`).
 
         The first `step` from this pose takes the windows `start` takes (the same boxes, no motion yet), so its
@@ -641,8 +666,8 @@ class Tracker:
         `default_matmul_precision` or `default_device` block would make it compile another program) and marks the
         signature compiled only when every compile succeeded; otherwise the step compiles as it did before."""
         self._join_precompile()  # a restart's (`start` again) compile after the last one's, not beside it
-        setup = self.setup()
-        signature = (crop_shape, scales is None, id(setup.window_plan))
+        setup, _, offsets_j, T, theta, params, crop_shape, scales_j, occluder_depth = states_args
+        signature = (crop_shape, scales_j is None, id(setup.window_plan))
         if not self.precompile_first_step or signature in self._compiled:
             return
         sil_like = _initial_appearance_jit.outputs_like(*appearance_args)
@@ -661,31 +686,19 @@ class Tracker:
             return
         finally:
             self.host_cache = saved
-        frames_j = to_device(self._frames_as_state(frames))
-        args = (setup, state_like, frames_j, to_device(offsets), self.params_for(crop_shape), crop_shape, _as_array(scales))
+        start_args = (setup, state_like, to_device(self._frames_as_state(frames)), offsets_j, params, crop_shape, scales_j)
         overlaps = self._overlaps_host()
         settings = (jax_settings(), jax.config.jax_default_device)
 
         def compile_first_step():
             if (jax_settings(), jax.config.jax_default_device) != settings:
                 return
-            done = [True]
-            inner = None
             try:
-                early_like = _start_frame_jit.outputs_like(*args) if overlaps else None
-                if early_like is not None:  # `_compile_both`'s pair: start_frame beside track_step
-                    def compile_start_frame():
-                        done[0] = _start_frame_jit.compile(*args)
-
-                    inner = threading.Thread(target=compile_start_frame, daemon=True, name="jaxtrack-start-frame-compile")
-                    inner.start()
-                compiled = _track_step_jit.compile(*args[:3], host_like, *args[3:], early_like)
+                early_like = _start_frame_jit.outputs_like(*start_args) if overlaps else None
+                _, compiled = _compile_step_programs(start_args, early_like, lambda: host_like)
             except Exception:  # noqa: BLE001  (the step's own call compiles, and reports what fails)
                 compiled = False
-            finally:
-                if inner is not None:
-                    inner.join()
-            if compiled and done[0]:
+            if compiled:
                 self._compiled.add(signature)  # read by the step only after it joined this thread
 
         self._precompile = threading.Thread(target=compile_first_step, daemon=True, name="jaxtrack-first-step-compile")
@@ -823,23 +836,22 @@ class Tracker:
         return new_state, result, host_s
 
     def _compile_both(self, setup, state, frames, frames_j, offsets_j, params, crop_shape, scales_j, timings):
-        """The first frame of a signature with the host overlapped: `start_frame`'s program compiles (or loads from
-        the on-disk cache) in a thread while this one makes the host inputs and compiles `track_step`'s, so that the
-        two executables load at once (XLA releases the GIL: a warm cache's two loads, 0.58 + 0.54 s on this 2-core
-        CPU, take about the time of one). Only for kept programs (`persistent_jit`; the plain path compiles each at
-        its first call). Returns (host inputs, their seconds)."""
+        """The first frame of a signature with the host overlapped: the two programs compile while the host inputs are
+        made (`_compile_step_programs`). Only for kept programs (`persistent_jit`; the plain path compiles each at its
+        first call). Returns (host inputs, their seconds)."""
         start_args = (setup, state, frames_j, offsets_j, params, crop_shape, scales_j)
         early_like = _start_frame_jit.outputs_like(*start_args)  # its entry: traced and exported, or loaded
-        thread = None
-        if early_like is not None:
-            thread = threading.Thread(target=_start_frame_jit.compile, args=start_args, daemon=True,
-                                      name="jaxtrack-start-frame-compile")
-            thread.start()
-        host, host_s = self._timed_host_inputs(state, frames, timings)
-        if thread is not None:
-            _track_step_jit.compile(setup, state, frames_j, host, offsets_j, params, crop_shape, scales_j, early_like)
-            thread.join()
-        return host, host_s
+        if early_like is None:
+            return self._timed_host_inputs(state, frames, timings)
+        seconds = []
+
+        def make_host():
+            host, host_s = self._timed_host_inputs(state, frames, timings)
+            seconds.append(host_s)
+            return host
+
+        host, _ = _compile_step_programs(start_args, early_like, make_host)
+        return host, seconds[0]
 
     def _timed_host_inputs(self, state, frames, timings):
         """(`host_inputs`, the seconds they took)."""
