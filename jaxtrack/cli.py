@@ -1113,9 +1113,9 @@ def build_parser() -> argparse.ArgumentParser:
     track.add_argument("--reset-on-failure", dest="reset_on_failure", action="store_true",
                        help="RBOT protocol: beyond 5 cm / 5° of scene_gt.json, count a failure and restart from the truth")
     track.add_argument("--recover", action="store_true",
-                       help="after a LOST frame, search for the object (SIFT keyframes + PnP) and restart from what is "
-                       "found (status RECOVERED); rigid objects with the line modality; off by default "
-                       "(experiments/results/recovery.md)")
+                       help="after a LOST frame, search for the object (SIFT keyframes + PnP, then pose hypotheses scored "
+                       "on the lines) and restart from what is found (status RECOVERED); rigid objects with the line "
+                       "modality; off by default (experiments/results/recovery.md)")
     track.add_argument("--init-pose", dest="init_pose", metavar="POSE", action="append",
                        help="first pose, model → first view's camera (mm), instead of scene_gt.json's (or of --init-points): "
                        "a .npy/.json/.txt file or 12 (3x4) / 16 (4x4) numbers, row-major, comma-separated; once per "

@@ -576,6 +576,35 @@ def test_an_injected_jump_is_lost_then_recovered(lines_sift):
 
 
 @pytest.mark.xdist_group("lines_sift")
+def test_a_frame_lost_while_the_search_still_compiles_does_not_wait_for_it(sequence, lines_sift):
+    """No frame waits for a compile after the first: a frame LOST while the hypotheses' program still compiles in the
+    background (here a warm-up thread that waits 30 s unless released) stays LOST without joining it, its search
+    skipped ("compiling"), and nothing is traced for it."""
+    import threading
+
+    from jaxtrack.track._recovery import recover_pose
+
+    tracker, state, _ = lines_sift
+    saved = dict(vars(tracker))
+    release = threading.Event()
+    compiling = threading.Thread(target=lambda: release.wait(30.0), name="jaxtrack-recovery-compile", daemon=True)
+    compiling.start()
+    try:
+        tracker._recovery_warmup, tracker.keyframes = compiling, None  # the hypotheses alone, their compile under way
+        traces = eqx.debug.get_num_traces(recover_pose)
+        _, result, info = tracker.step(_turned(state, 50.0), sequence["images"][2])
+        assert int(result.status) == jt.Status.LOST, jt.Status(int(result.status)).name
+        assert info["recovery"] is not None and info["recovery"]["skipped"] == "compiling", info["recovery"]
+        assert not info["recovery"]["recovered"] and compiling.is_alive()  # not joined: the step returned without it
+        assert eqx.debug.get_num_traces(recover_pose) == traces
+    finally:
+        release.set()
+        compiling.join()
+        vars(tracker).clear()
+        vars(tracker).update(saved)
+
+
+@pytest.mark.xdist_group("lines_sift")
 def test_the_recovery_restart_asks_for_windows_without_the_last_motion(sequence, lines_sift, monkeypatch):
     """The recovery's second step runs frames t+1 → t+1 from a found pose: no motion between a frame and itself, so
     `Tracker._restart` asks for windows around the found box without the last step's motion (`follow_motion=False`)."""

@@ -16,7 +16,9 @@ for a pose the colours cannot tell from any other. The refined candidates are co
 scale of the lines' schedule (`final_scale`).
 
 One compiled program per tracker (rig, mesh, view model and these static settings); `Tracker` compiles it in a
-background thread after the first step when recovery is on (`Tracker.warm_up_recovery`), so no frame waits for it.
+background thread after the first step when recovery is on (`Tracker.warm_up_recovery`), so no frame waits for it:
+a frame lost while it compiles waits at most `jaxtrack.track._tracker.RECOVERY_COMPILE_WAIT_S` (a trace and a
+cache hit), then stays LOST without the search.
 """
 
 from __future__ import annotations
@@ -54,9 +56,12 @@ class RecoveryConfig(eqx.Module):
         final_scale: px per segment of the refined candidates' score.
         keyframes: re-detection first (`jaxtrack.track._keyframes`: SIFT keyframes with model points, PnP + RANSAC),
             or None: the hypotheses alone.
-        hypotheses: when the keyframes find nothing, search the pose hypotheses scored on the lines. Off by default:
-            on the loss experiment's sequences every pose it found (17 in three runs) was 70-174° off
-            (experiments/results/recovery.md).
+        hypotheses: when the keyframes find nothing, search the pose hypotheses scored on the lines (on by default:
+            on the loss experiment's sequences the search found the noisy S = 3 sequence's first lost frame at 3°,
+            which the keyframes never did, mean 66.7 → 74.9 % against 81.3 % with RBOT resets; the poses it found
+            farther out, 90-180° flips, were refused by `margin` or by the step after it; experiments/results/
+            recovery.md against recovery_keyframes_only.md). Earlier every pose it found (17 in three runs) was
+            70-174° off: a search far from the truth can still take a wrong pose.
         margin: a found pose is taken only when its score beats the lost frame's own refined pose by this much
             (the score cannot tell a symmetric object's turned poses apart: a 180° flip of a box scores within
             0.01 of the right pose; measured in experiments/results/recovery.md).
@@ -69,7 +74,7 @@ class RecoveryConfig(eqx.Module):
     final_scale: int = eqx.field(static=True, default=2)
     margin: float = eqx.field(static=True, default=0.02)
     keyframes: KeyframeConfig | None = eqx.field(static=True, default_factory=KeyframeConfig)
-    hypotheses: bool = eqx.field(static=True, default=False)
+    hypotheses: bool = eqx.field(static=True, default=True)
 
     def __check_init__(self):
         if not 0 <= self.axis_subdivisions <= 3:

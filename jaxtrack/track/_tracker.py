@@ -16,9 +16,10 @@ and matching (OpenCV, one thread per camera and core), and a re-plan of the rast
 crop size class and raster plan; with a modality that reads host inputs (SIFT) its first part, `start_frame`
 (crops, render at χ_t, flow), is a program of its own, dispatched before the host detects and matches so
 that the device computes the flow meanwhile (`Tracker.overlap_host`). After a LOST frame (rigid object, line
-modality) the hypothesis search (`jaxtrack.track._recovery.recover_pose`, compiled in the background after the
-first frame) looks for the pose, and the normal step is run again from what it found (status RECOVERED when that
-step is OK).
+modality) the keyframes' PnP and the hypothesis search (`jaxtrack.track._recovery.recover_pose`, compiled in the
+background after the first frame; a frame lost before that compile ends waits at most `RECOVERY_COMPILE_WAIT_S`,
+then stays LOST) look for the pose, and the normal step is run again from what it found (status RECOVERED when
+that step is OK).
 """
 
 from __future__ import annotations
@@ -72,6 +73,10 @@ from ._step import (
 _track_step_jit = persistent_jit(track_step)
 _start_frame_jit = persistent_jit(start_frame)
 _recover_pose_jit = persistent_jit(recover_pose)
+
+# Longest wait of a lost frame for the recovery program's background compile (`Tracker._search`): a trace and a
+# cache hit, not a compile.
+RECOVERY_COMPILE_WAIT_S = 1.0
 
 # The flow's structure factor counts no structure near the limbs of the render (`TrackerParams.flow_limb_slope`,
 # `jaxtrack.cues.flow.limb_pixels`): a one-pixel depth step above tan 80°. Rigid objects only (chains: not measured,
@@ -742,7 +747,8 @@ class Tracker:
 
         Returns:
             (state at t+1, `FrameResult`, info: host timings in seconds, the crop, and "recovery": None, or what the
-            search after a LOST frame found ("source", "pnp_inliers", "score", "own_score", "hypothesis", "recovered")).
+            search after a LOST frame found ("source", "pnp_inliers", "score", "own_score", "hypothesis", "recovered";
+            "skipped": "compiling" when the hypotheses' program was still compiling in the background)).
 
         Raises:
             ValueError: malformed frames.
@@ -961,6 +967,17 @@ class Tracker:
                 if info["recovered"]:
                     return out
         if not self.config.recovery.hypotheses:
+            info["windows"] = self.windows(lost.T_world_root, theta)
+            return frozen, lost, info
+        if self._recovery_warmup is not None:
+            # No frame waits for a compile: a frame lost while the hypotheses' program still compiles in the background
+            # (6.9 s in a fresh process on the loss experiment's sequences) stays LOST, and the search runs from the
+            # next lost frame on. A short wait is taken: a second tracker of the same configuration in a process only
+            # traces the program and finds it compiled (0.3-0.4 s measured), and the first lost frame, often the one
+            # nearest the right pose, is where the search is most likely to find it.
+            self._recovery_warmup.join(timeout=RECOVERY_COMPILE_WAIT_S)
+        if self._recovery_warmup is not None and self._recovery_warmup.is_alive():
+            info["skipped"] = "compiling"
             info["windows"] = self.windows(lost.T_world_root, theta)
             return frozen, lost, info
         found = self.recover(state, frames, lost.T_world_root, params)
