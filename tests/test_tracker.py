@@ -605,6 +605,35 @@ def test_a_frame_lost_while_the_search_still_compiles_does_not_wait_for_it(seque
 
 
 @pytest.mark.xdist_group("lines_sift")
+def test_a_found_pose_near_the_lost_one_needs_no_margin_and_a_flip_does(sequence, lines_sift, monkeypatch):
+    """The search's pose is tried (the normal step from it, `_restart`) when it scores no worse than the lost pose's
+    own refinement and lies within `RecoveryConfig.near_deg` of the lost pose; turned farther (a symmetric object's
+    flips), it must beat that score by `margin`."""
+    from jaxtrack.track._recovery import RecoveryResult
+
+    tracker, state, tracked = lines_sift
+    config = tracker.config.recovery
+    tried = []
+    monkeypatch.setattr(tracker, "keyframes", None)
+    monkeypatch.setattr(tracker, "_restart", lambda *args: tried.append(True) or (args[1], args[2], args[-1]))
+
+    def search(degrees, gain):
+        found = _turned(state, degrees).T_world_root
+        monkeypatch.setattr(tracker, "recover", lambda *a, **k: RecoveryResult(
+            T_world_root=found, score=jnp.asarray(0.8 + gain), own_score=jnp.asarray(0.8), index=jnp.asarray(1),
+            scores=jnp.zeros(3), status=jnp.asarray(0)))
+        tried.clear()
+        tracker._search(state, state, eqx.tree_at(lambda r: r.T_world_root, tracked, state.T_world_root),
+                        sequence["images"][1], None, None)
+        return bool(tried)
+
+    near, far = 0.5 * config.near_deg, min(2.0 * config.near_deg, 170.0)
+    assert search(near, 0.0) and not search(near, -0.001)
+    assert not search(far, 0.0) and not search(far, 0.5 * config.margin)
+    assert search(far, 1.5 * config.margin)
+
+
+@pytest.mark.xdist_group("lines_sift")
 def test_the_recovery_restart_asks_for_windows_without_the_last_motion(sequence, lines_sift, monkeypatch):
     """The recovery's second step runs frames t+1 → t+1 from a found pose: no motion between a frame and itself, so
     `Tracker._restart` asks for windows around the found box without the last step's motion (`follow_motion=False`)."""

@@ -57,14 +57,20 @@ class RecoveryConfig(eqx.Module):
         keyframes: re-detection first (`jaxtrack.track._keyframes`: SIFT keyframes with model points, PnP + RANSAC),
             or None: the hypotheses alone.
         hypotheses: when the keyframes find nothing, search the pose hypotheses scored on the lines (on by default:
-            on the loss experiment's sequences the search found the noisy S = 3 sequence's first lost frame at 3°,
-            which the keyframes never did, mean 66.7 → 74.9 % against 81.3 % with RBOT resets; the poses it found
-            farther out, 90-180° flips, were refused by `margin` or by the step after it; experiments/results/
-            recovery.md against recovery_keyframes_only.md). Earlier every pose it found (17 in three runs) was
-            70-174° off: a search far from the truth can still take a wrong pose.
-        margin: a found pose is taken only when its score beats the lost frame's own refined pose by this much
-            (the score cannot tell a symmetric object's turned poses apart: a 180° flip of a box scores within
-            0.01 of the right pose; measured in experiments/results/recovery.md).
+            on the loss experiment's sequences it RECOVERED 4 frames, 3 within 5 cm / 5° and one at 5°, which the
+            keyframes never did: mean 66.7 → 77.2 % against 81.3 % with RBOT resets; the 90-180° flips it found were
+            refused by `margin` or by the step after it; experiments/results/recovery.md against
+            recovery_keyframes_only.md). Earlier every pose it found (17 in three runs) was 70-174° off: a search far
+            from the truth can still take a wrong pose.
+        margin: a found pose turned by more than `near_deg` from the lost pose is taken only when its score beats
+            the lost frame's own refined pose by this much (the score cannot tell a symmetric object's turned poses
+            apart: a 180° flip of a box scores within 0.01 of the right pose; measured in
+            experiments/results/recovery.md).
+        near_deg: a found pose within this rotation of the lost pose needs only to score no worse than the lost
+            pose's own refinement; the normal step from it then decides (`Tracker._restart`). The margin is for the
+            turned poses of a symmetric object, and a box's are 90° or more away: 45° is half of that. A correction
+            that near scores like the lost pose (the occluded frame-rate sequences: found 1-5° off from lost poses
+            10-17° off, at the lost pose's score to 0.001).
     """
 
     axis_subdivisions: int = eqx.field(static=True, default=1)
@@ -73,6 +79,7 @@ class RecoveryConfig(eqx.Module):
     score_scale: int = eqx.field(static=True, default=5)
     final_scale: int = eqx.field(static=True, default=2)
     margin: float = eqx.field(static=True, default=0.02)
+    near_deg: float = eqx.field(static=True, default=45.0)
     keyframes: KeyframeConfig | None = eqx.field(static=True, default_factory=KeyframeConfig)
     hypotheses: bool = eqx.field(static=True, default=True)
 
@@ -81,6 +88,8 @@ class RecoveryConfig(eqx.Module):
             raise ValueError(f"RecoveryConfig.axis_subdivisions must be 0..3, got {self.axis_subdivisions}")
         if self.refine < 1 or self.score_scale < 1 or self.final_scale < 1:
             raise ValueError("RecoveryConfig: refine, score_scale and final_scale must be ≥ 1")
+        if not 0.0 <= self.near_deg <= 180.0:
+            raise ValueError(f"RecoveryConfig.near_deg must be in [0, 180], got {self.near_deg}")
         if any(not 0 < a <= 180 for a in self.angles_deg):
             raise ValueError(f"RecoveryConfig.angles_deg must be in (0, 180], got {self.angles_deg}")
 

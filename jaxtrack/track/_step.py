@@ -131,9 +131,9 @@ class TrackerConfig(eqx.Module):
             (the working resolution is not measured on Table II).
         recovery: the search after a LOST frame (`RecoveryConfig`, `jaxtrack.track.Tracker.step`; where `recovers`
             holds), or None (the default): a lost frame is reported and tracking goes on from its pose. Off by default:
-            on the loss experiment's sequences it recovered one frame, one sequence (mean 67.2 → 74.9 % against 81.3 %
-            with RBOT resets, experiments/results/recovery.md), none on the recorded video, and it costs a background
-            compile after the first frame (6.9 s of the 2 cores) and 130-370 ms per lost frame.
+            on the loss experiment's sequences it recovered 4 frames (mean 67.2 → 77.2 % against 81.3 % with RBOT
+            resets, experiments/results/recovery.md), none on the recorded video, and it costs a background compile
+            after the first frame (6.9 s of the 2 cores) and 130-390 ms per lost frame.
     """
 
     cues: tuple = eqx.field(static=True, default=CUES)

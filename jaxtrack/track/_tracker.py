@@ -54,7 +54,7 @@ from ..geometry._validate import checked_rotation
 from ..modality import Pose, StartContext
 from ..render import Mesh, RasterPlan, render, replan
 from ..solve import CueWeights
-from ._keyframes import KeyframeModel
+from ._keyframes import KeyframeModel, _rotation_deg
 from ._recovery import recover_pose
 from ._step import (
     LOSS_EVIDENCE,
@@ -983,7 +983,10 @@ class Tracker:
         found = self.recover(state, frames, lost.T_world_root, params)
         info.update({"score": float(found.score), "own_score": float(found.own_score), "hypothesis": int(found.index),
                      "T_found": np.asarray(found.T_world_root), "source": "region"})
-        if not float(found.score) >= float(found.own_score) + self.config.recovery.margin:  # nothing clearly better
+        turned = _rotation_deg(np.asarray(found.T_world_root, np.float64)[:3, :3], np.asarray(lost.T_world_root, np.float64)[:3, :3])
+        margin = 0.0 if turned <= self.config.recovery.near_deg else self.config.recovery.margin  # flips must beat it clearly
+        info["turned_deg"] = turned
+        if not float(found.score) >= float(found.own_score) + margin:  # nothing better
             info["windows"] = self.windows(lost.T_world_root, theta)
             return frozen, lost, info
         return self._restart(state, frozen, lost, frames, frames_j, params, found.T_world_root, info)
