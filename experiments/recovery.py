@@ -67,6 +67,8 @@ def track(seq, mode: str, hypotheses: bool = True) -> list[dict]:
                      "source": None if rec is None else rec["source"], "recovered": bool(rec and rec["recovered"]),
                      "pnp_inliers": None if rec is None else rec.get("pnp_inliers"),
                      "hypothesis": None if rec is None else rec.get("hypothesis"),
+                     "skipped": None if rec is None else rec.get("skipped"),
+                     "turned_deg": None if rec is None else rec.get("turned_deg"),
                      "score": None if rec is None else rec.get("score"), "own_score": None if rec is None else rec.get("own_score"),
                      "found_rot_deg": None if rec is None or "T_found" not in rec else
                      float(rotation_error_deg(rec["T_found"][:3, :3], T_world[k][:3, :3])),
@@ -115,13 +117,16 @@ def report(command: str, elapsed_s: float, load, runs: dict, hypotheses: bool = 
     failed = np.array([r["failed"] for r in rec])
     p, rcl = precision_recall(flagged, failed)
     searched = [r for r in rec if r["searched"]]
+    skipped = [r for r in searched if r.get("skipped")]  # lost while the search still compiled: no search, no time
+    searched = [r for r in searched if not r.get("skipped")]
     recovered = [r for r in rec if r["status"] == "RECOVERED"]
     times = np.array([r["recovery_s"] for r in searched], float) * 1000.0
     normal = np.array([r["total_s"] for r in rec if not r["searched"]], float) * 1000.0
     lines += ["", "## The recovery run", "",
               (f"- Status LOST / UNCERTAIN against frames beyond 5 cm / 5° (all sequences): precision {p:.2f}, recall {rcl:.2f} "
               f"({int(flagged.sum())} flagged, {int(failed.sum())} beyond, {len(rec)} frames)."),
-              (f"- Frames that searched (LOST after the step): {len(searched)}; RECOVERED: {len(recovered)}, of which within "
+              (f"- Frames that searched (LOST after the step): {len(searched)} (and {len(skipped)} lost while the search's program "
+              f"still compiled, not searched); RECOVERED: {len(recovered)}, of which within "
               f"the bound: {sum(not r['failed'] for r in recovered)}; found by the keyframes' PnP: "
               f"{sum(r['source'] == 'keyframes' and r['recovered'] for r in searched)}, by the region search: "
               f"{sum(r['source'] == 'region' and r['recovered'] for r in searched)}."),

@@ -576,27 +576,47 @@ def test_an_injected_jump_is_lost_then_recovered(lines_sift):
 
 
 @pytest.mark.xdist_group("lines_sift")
-def test_a_frame_lost_while_the_search_still_compiles_does_not_wait_for_it(sequence, lines_sift):
-    """No frame waits for a compile after the first: a frame LOST while the hypotheses' program still compiles in the
-    background (here a warm-up thread that waits 30 s unless released) stays LOST without joining it, its search
-    skipped ("compiling"), and nothing is traced for it."""
+def test_a_frame_lost_while_the_search_still_compiles_does_not_wait_for_it(sequence, lines_sift, monkeypatch):
+    """No frame waits for a compile after the first: lost frames wait for the hypotheses' background compile at most
+    the tracker's budget (`RECOVERY_COMPILE_WAIT_S` in all; here 0.05 s), and a frame lost while it still compiles
+    (a warm-up thread that ends only when released) stays LOST with its search skipped ("compiling"), nothing traced
+    for it. A compile that ends within the budget is waited for and searched with; one that raised is not tried
+    again in the tracking thread ("compile failed")."""
     import threading
 
-    from jaxtrack.track._recovery import recover_pose
+    from jaxtrack.track._recovery import RecoveryResult, recover_pose
 
     tracker, state, _ = lines_sift
     saved = dict(vars(tracker))
     release = threading.Event()
-    compiling = threading.Thread(target=lambda: release.wait(30.0), name="jaxtrack-recovery-compile", daemon=True)
+    compiling = threading.Thread(target=lambda: release.wait(300.0), name="jaxtrack-recovery-compile", daemon=True)
     compiling.start()
+    searched = []
+    nothing_better = lambda *a, **k: searched.append(True) or RecoveryResult(
+        T_world_root=state.T_world_root, score=jnp.asarray(0.5), own_score=jnp.asarray(0.9), index=jnp.asarray(1),
+        scores=jnp.zeros(3), status=jnp.asarray(0))
+    lost = _turned(state, 50.0)
     try:
-        tracker._recovery_warmup, tracker.keyframes = compiling, None  # the hypotheses alone, their compile under way
+        tracker._recovery_warmup, tracker.keyframes, tracker._recovery_wait_left = compiling, None, 0.05
         traces = eqx.debug.get_num_traces(recover_pose)
-        _, result, info = tracker.step(_turned(state, 50.0), sequence["images"][2])
+        _, result, info = tracker.step(lost, sequence["images"][2])
         assert int(result.status) == jt.Status.LOST, jt.Status(int(result.status)).name
         assert info["recovery"] is not None and info["recovery"]["skipped"] == "compiling", info["recovery"]
-        assert not info["recovery"]["recovered"] and compiling.is_alive()  # not joined: the step returned without it
+        assert not info["recovery"]["recovered"] and compiling.is_alive()  # the step returned without it
+        assert tracker._recovery_wait_left <= 0.0  # the budget is spent: the next lost frame does not wait
         assert eqx.debug.get_num_traces(recover_pose) == traces
+
+        monkeypatch.setattr(tracker, "recover", nothing_better)
+        ending = threading.Thread(target=lambda: release.wait(0.05), name="jaxtrack-recovery-compile", daemon=True)
+        ending.start()
+        tracker._recovery_warmup, tracker._recovery_wait_left = ending, 60.0
+        _, result, info = tracker.step(lost, sequence["images"][2])
+        assert searched and "skipped" not in info["recovery"], info["recovery"]  # waited for it, then searched
+
+        searched.clear()
+        tracker._recovery_warmup_error = RuntimeError("no memory")
+        _, result, info = tracker.step(lost, sequence["images"][2])
+        assert not searched and info["recovery"]["skipped"].startswith("compile failed"), info["recovery"]
     finally:
         release.set()
         compiling.join()
@@ -615,6 +635,7 @@ def test_a_found_pose_near_the_lost_one_needs_no_margin_and_a_flip_does(sequence
     config = tracker.config.recovery
     tried = []
     monkeypatch.setattr(tracker, "keyframes", None)
+    monkeypatch.setattr(tracker, "_recovery_warmup", None)  # no background compile to wait for
     monkeypatch.setattr(tracker, "_restart", lambda *args: tried.append(True) or (args[1], args[2], args[-1]))
 
     def search(degrees, gain):

@@ -16,9 +16,10 @@ for a pose the colours cannot tell from any other. The refined candidates are co
 scale of the lines' schedule (`final_scale`).
 
 One compiled program per tracker (rig, mesh, view model and these static settings); `Tracker` compiles it in a
-background thread after the first step when recovery is on (`Tracker.warm_up_recovery`), so no frame waits for it:
-a frame lost while it compiles waits at most `jaxtrack.track._tracker.RECOVERY_COMPILE_WAIT_S` (a trace and a
-cache hit), then stays LOST without the search.
+background thread after the first step when recovery is on (`Tracker.warm_up_recovery`), so no frame waits for
+the compile: lost frames wait for it at most `jaxtrack.track._tracker.RECOVERY_COMPILE_WAIT_S` (1 s, a trace and a
+cache hit) in all, and a frame lost while it still compiles stays LOST without the search. With the warm-up off
+($JAXTRACK_RECOVERY_WARMUP=0) the first lost frame compiles it, and `Tracker.recover` called directly waits for it.
 """
 
 from __future__ import annotations
@@ -58,7 +59,8 @@ class RecoveryConfig(eqx.Module):
             or None: the hypotheses alone.
         hypotheses: when the keyframes find nothing, search the pose hypotheses scored on the lines (on by default:
             on the loss experiment's sequences it RECOVERED 4 frames, 3 within 5 cm / 5° and one at 5°, which the
-            keyframes never did: mean 66.7 → 77.2 % against 81.3 % with RBOT resets; the 90-180° flips it found were
+            keyframes never did: mean within 5 cm / 5° 66.7 % with the keyframes alone → 77.2 %, 81.3 % with RBOT
+            resets; the 90-180° flips it found were
             refused by `margin` or by the step after it; experiments/results/recovery.md against
             recovery_keyframes_only.md). Earlier every pose it found (17 in three runs) was 70-174° off: a search far
             from the truth can still take a wrong pose.
@@ -67,10 +69,14 @@ class RecoveryConfig(eqx.Module):
             apart: a 180° flip of a box scores within 0.01 of the right pose; measured in
             experiments/results/recovery.md).
         near_deg: a found pose within this rotation of the lost pose needs only to score no worse than the lost
-            pose's own refinement; the normal step from it then decides (`Tracker._restart`). The margin is for the
-            turned poses of a symmetric object, and a box's are 90° or more away: 45° is half of that. A correction
-            that near scores like the lost pose (the occluded frame-rate sequences: found 1-5° off from lost poses
-            10-17° off, at the lost pose's score to 0.001).
+            pose's own refinement; the normal step from it then decides (`Tracker._restart`). So the lost pose's own
+            refinement by the lines is tried whenever nothing scores better (a lost frame then costs a search and a
+            second step; it RECOVERED one frame of the occluded S = 4 sequence at 1°). The margin is for the turned
+            poses of a symmetric object, and a box's are 90° or more away: 45° is half of that (an object symmetric
+            every 60°, or about an axis, is not covered; the translation is not compared). A correction that near
+            scores like the lost pose (the occluded frame-rate sequences: found 1-5° off from lost poses 10-17° off,
+            at the lost pose's score to 0.001). Read off the loss experiment's evaluation sequences. Like `margin`, a
+            host-side rule that is part of the static configuration (changing it compiles the search again).
     """
 
     axis_subdivisions: int = eqx.field(static=True, default=1)

@@ -130,10 +130,12 @@ class TrackerConfig(eqx.Module):
             crops cut at the native resolution in size classes (one compilation per class); chains keep them
             (the working resolution is not measured on Table II).
         recovery: the search after a LOST frame (`RecoveryConfig`, `jaxtrack.track.Tracker.step`; where `recovers`
-            holds), or None (the default): a lost frame is reported and tracking goes on from its pose. Off by default:
-            on the loss experiment's sequences it recovered 4 frames (mean 67.2 → 77.2 % against 81.3 % with RBOT
-            resets, experiments/results/recovery.md), none on the recorded video, and it costs a background compile
-            after the first frame (6.9 s of the 2 cores) and 130-390 ms per lost frame.
+            holds), or None (the default): a lost frame is reported and tracking goes on from its pose. Off by default,
+            though on the loss experiment's sequences it recovered 4 frames (mean within 5 cm / 5° 67.2 % without
+            recovery → 77.2 %, 81.3 % with RBOT resets; experiments/results/recovery.md): on the recorded video it
+            recovered none and changed no result, and it costs a background compile after the first step (6.9 s of
+            the 2 cores) and a search and a second step on every lost frame (162 ms median, 343 max; the real
+            dragon 50 → 185 ms per frame in median).
     """
 
     cues: tuple = eqx.field(static=True, default=CUES)

@@ -17,8 +17,8 @@ crop size class and raster plan; with a modality that reads host inputs (SIFT) i
 (crops, render at χ_t, flow), is a program of its own, dispatched before the host detects and matches so
 that the device computes the flow meanwhile (`Tracker.overlap_host`). After a LOST frame (rigid object, line
 modality) the keyframes' PnP and the hypothesis search (`jaxtrack.track._recovery.recover_pose`, compiled in the
-background after the first frame; a frame lost before that compile ends waits at most `RECOVERY_COMPILE_WAIT_S`,
-then stays LOST) look for the pose, and the normal step is run again from what it found (status RECOVERED when
+background after the first frame; lost frames wait for that compile at most `RECOVERY_COMPILE_WAIT_S` in all, and
+one lost while it still compiles stays LOST) look for the pose, and the normal step is run again from what it found (status RECOVERED when
 that step is OK).
 """
 
@@ -74,8 +74,8 @@ _track_step_jit = persistent_jit(track_step)
 _start_frame_jit = persistent_jit(start_frame)
 _recover_pose_jit = persistent_jit(recover_pose)
 
-# Longest wait of a lost frame for the recovery program's background compile (`Tracker._search`): a trace and a
-# cache hit, not a compile.
+# Longest time a tracker's lost frames wait, all of them together, for the recovery program's background compile
+# (`Tracker._search`): enough for a trace and a cache hit (0.3-0.4 s measured), not for a compile (6.9 s).
 RECOVERY_COMPILE_WAIT_S = 1.0
 
 # The flow's structure factor counts no structure near the limbs of the render (`TrackerParams.flow_limb_slope`,
@@ -365,6 +365,8 @@ class Tracker:
         self._boxes_memo = None  # (pose bytes, (C, 4) boxes) of the last projected pose (`_boxes_at`)
         self.recoveries = 0  # frames RECOVERED since `start`
         self._recovery_warmup: threading.Thread | None = None
+        self._recovery_warmup_error: BaseException | None = None  # what the background compile raised, if it did
+        self._recovery_wait_left = RECOVERY_COMPILE_WAIT_S  # what lost frames may still wait for that compile
         self._compiled: set = set()  # (crop shape, fixed resolution, plan) whose step programs are compiled (`_compile_both`, `_start_precompile`)
         # The first step's programs compile in a background thread from `start` on (`_start_precompile`), beside the
         # start's own small programs; $JAXTRACK_PRECOMPILE=0: when the first step needs them.
@@ -748,7 +750,8 @@ class Tracker:
         Returns:
             (state at t+1, `FrameResult`, info: host timings in seconds, the crop, and "recovery": None, or what the
             search after a LOST frame found ("source", "pnp_inliers", "score", "own_score", "hypothesis", "recovered";
-            "skipped": "compiling" when the hypotheses' program was still compiling in the background)).
+            "skipped": "compiling" when the hypotheses' program was still compiling in the background, "compile
+            failed: ..." when that compile raised; "turned_deg": the found pose's rotation from the lost one)).
 
         Raises:
             ValueError: malformed frames.
@@ -771,6 +774,9 @@ class Tracker:
         step_start = time.perf_counter()
         new_state, result, host_s = self._run_step(state, frames, frames_j, offsets, params, crop_shape, scales, timings=timings)
         timings["step_s"] = time.perf_counter() - step_start - host_s
+        if (self.warm_up_recovery and self._recovery_warmup is None and self.recovery_modality() is not None
+                and self.config.recovery.hypotheses):  # before a search of this frame: it must not compile in this thread
+            self._warm_up_recovery(new_state, frames_j, params)
         recovery = None
         if recover and int(result.status) == Status.LOST and self.recovery_modality() is not None:
             rec_start = time.perf_counter()
@@ -783,9 +789,6 @@ class Tracker:
                 key_start = time.perf_counter()
                 self._add_keyframe(frames, np.asarray(new_state.visible), result.T_world_root)
                 timings["keyframe_s"] = time.perf_counter() - key_start
-        if (self.warm_up_recovery and self._recovery_warmup is None and self.recovery_modality() is not None
-                and self.config.recovery.hypotheses):
-            self._warm_up_recovery(new_state, frames_j, params)
         timings["total_s"] = time.perf_counter() - start
         self.record_motion(before, self._boxes_at(result.T_world_root, result.theta))
         return new_state, result, {"timings": timings, "offsets": offsets, "crop_shape": crop_shape, "scales": scales,
@@ -910,18 +913,27 @@ class Tracker:
                 tuple(lines.scales), tuple(lines.standard_deviations), lines.rounds, self.config.recovery)
 
     def _warm_up_recovery(self, state: TrackerState, frames_j, params: TrackerParams) -> None:
-        """Compile the recovery program in a background thread (after the first frame: the step's compile comes
-        first), so that the first lost frame does not wait for it."""
+        """Compile the recovery program in a background thread (after the first step: that step's compile comes
+        first), so that no lost frame waits for it (`_search`). What the compile raises is kept
+        (`_recovery_warmup_error`): the search is then skipped, not compiled again in the tracking thread."""
         args = self._recovery_args(state, frames_j, jnp.stack([state.T_world_root] * 2), params)
-        thread = threading.Thread(target=lambda: jax.block_until_ready(_recover_pose_jit(*args)), daemon=True,
-                                  name="jaxtrack-recovery-compile")
+
+        def compile_search():
+            try:
+                jax.block_until_ready(_recover_pose_jit(*args))
+            except Exception as error:  # noqa: BLE001  (reported through the frames' recovery info)
+                self._recovery_warmup_error = error
+
+        thread = threading.Thread(target=compile_search, daemon=True, name="jaxtrack-recovery-compile")
+        self._recovery_wait_left = RECOVERY_COMPILE_WAIT_S
         thread.start()
         self._recovery_warmup = thread
 
     def recover(self, state: TrackerState, frames, reference=None, params: TrackerParams | None = None):
         """The hypothesis search alone (`recover_pose`) on frames (C, H, W[, 3]) with the line histograms of `state`,
         around `reference` (4, 4) (default: the state's pose) and the last pose reported OK. Returns a
-        `RecoveryResult` (its `T_world_root` is the best refined pose)."""
+        `RecoveryResult` (its `T_world_root` is the best refined pose). Called directly, it waits for the background
+        compile however long it takes (the tracking loop's lost frames do not: `_search`)."""
         if self.recovery_modality() is None:
             raise ValueError("recover: this tracker has no recovery (needs TrackerConfig.recovers() and a rigid object)")
         if self._recovery_warmup is not None:  # its compile, not a second one
@@ -969,22 +981,29 @@ class Tracker:
         if not self.config.recovery.hypotheses:
             info["windows"] = self.windows(lost.T_world_root, theta)
             return frozen, lost, info
-        if self._recovery_warmup is not None:
+        warmup = self._recovery_warmup
+        if warmup is not None and warmup.is_alive() and self._recovery_wait_left > 0:
             # No frame waits for a compile: a frame lost while the hypotheses' program still compiles in the background
             # (6.9 s in a fresh process on the loss experiment's sequences) stays LOST, and the search runs from the
-            # next lost frame on. A short wait is taken: a second tracker of the same configuration in a process only
-            # traces the program and finds it compiled (0.3-0.4 s measured), and the first lost frame, often the one
-            # nearest the right pose, is where the search is most likely to find it.
-            self._recovery_warmup.join(timeout=RECOVERY_COMPILE_WAIT_S)
-        if self._recovery_warmup is not None and self._recovery_warmup.is_alive():
-            info["skipped"] = "compiling"
+            # next lost frame on. A short wait is taken, once per tracker (`RECOVERY_COMPILE_WAIT_S` for all its lost
+            # frames together): a second tracker of the same configuration in a process only traces the program and
+            # finds it compiled (0.3-0.4 s measured), and the first lost frame, often the one nearest the right pose,
+            # is where the search is most likely to find it.
+            wait_start = time.perf_counter()
+            warmup.join(timeout=self._recovery_wait_left)
+            self._recovery_wait_left -= time.perf_counter() - wait_start
+        if warmup is not None and (warmup.is_alive() or self._recovery_warmup_error is not None):
+            info["skipped"] = "compiling" if warmup.is_alive() else f"compile failed: {self._recovery_warmup_error!r}"
             info["windows"] = self.windows(lost.T_world_root, theta)
             return frozen, lost, info
         found = self.recover(state, frames, lost.T_world_root, params)
         info.update({"score": float(found.score), "own_score": float(found.own_score), "hypothesis": int(found.index),
                      "T_found": np.asarray(found.T_world_root), "source": "region"})
         turned = _rotation_deg(np.asarray(found.T_world_root, np.float64)[:3, :3], np.asarray(lost.T_world_root, np.float64)[:3, :3])
-        margin = 0.0 if turned <= self.config.recovery.near_deg else self.config.recovery.margin  # flips must beat it clearly
+        # Flips must beat the lost pose's refinement clearly; a near pose must only not be worse. The lost pose's own
+        # refinement by the lines (hypothesis 0, at its own score) is then tried whenever it is the best: every
+        # search that finds nothing better is followed by the normal step from that refinement (`_restart` decides).
+        margin = 0.0 if turned <= self.config.recovery.near_deg else self.config.recovery.margin
         info["turned_deg"] = turned
         if not float(found.score) >= float(found.own_score) + margin:  # nothing better
             info["windows"] = self.windows(lost.T_world_root, theta)
