@@ -117,7 +117,8 @@ def report(command: str, elapsed_s: float, load, runs: dict, hypotheses: bool = 
     failed = np.array([r["failed"] for r in rec])
     p, rcl = precision_recall(flagged, failed)
     searched = [r for r in rec if r["searched"]]
-    skipped = [r for r in searched if r.get("skipped")]  # lost while the search still compiled: no search, no time
+    compiling = [r for r in searched if r.get("skipped") == "compiling"]  # lost while the search still compiled
+    backoff = [r for r in searched if r.get("skipped") == "backoff"]  # a persistently lost object, due no search
     searched = [r for r in searched if not r.get("skipped")]
     recovered = [r for r in rec if r["status"] == "RECOVERED"]
     times = np.array([r["recovery_s"] for r in searched], float) * 1000.0
@@ -125,8 +126,8 @@ def report(command: str, elapsed_s: float, load, runs: dict, hypotheses: bool = 
     lines += ["", "## The recovery run", "",
               (f"- Status LOST / UNCERTAIN against frames beyond 5 cm / 5° (all sequences): precision {p:.2f}, recall {rcl:.2f} "
               f"({int(flagged.sum())} flagged, {int(failed.sum())} beyond, {len(rec)} frames)."),
-              (f"- Frames that searched (LOST after the step): {len(searched)} (and {len(skipped)} lost while the search's program "
-              f"still compiled, not searched); RECOVERED: {len(recovered)}, of which within "
+              (f"- Frames that searched (LOST after the step): {len(searched)} (not searched: {len(backoff)} LOST frames of the "
+              f"backoff, {len(compiling)} lost while the search's program still compiled); RECOVERED: {len(recovered)}, of which within "
               f"the bound: {sum(not r['failed'] for r in recovered)}; found by the keyframes' PnP: "
               f"{sum(r['source'] == 'keyframes' and r['recovered'] for r in searched)}, by the region search: "
               f"{sum(r['source'] == 'region' and r['recovered'] for r in searched)}."),

@@ -655,6 +655,43 @@ def test_a_found_pose_near_the_lost_one_needs_no_margin_and_a_flip_does(sequence
 
 
 @pytest.mark.xdist_group("lines_sift")
+def test_a_persistently_lost_object_is_searched_less_and_less_often(sequence, lines_sift):
+    """The search's backoff (`RecoveryConfig.max_skip`): of a run of lost frames whose searches find nothing, lost
+    frames 1, 2, 4, 8, 16, 25, 34 are searched (after k failed searches min(2^(k-1) - 1, 8) are skipped, each LOST as
+    a failed search leaves it); a RECOVERED search, or a frame not LOST, starts the count over."""
+    tracker, state, tracked = lines_sift
+    calls, outcome = [], {"recovered": False}
+    saved = dict(vars(tracker))  # the group's other tests use this tracker: its host state is put back after
+
+    def run(frames):
+        searched = []
+        for k in range(1, frames + 1):
+            before = len(calls)
+            _, result, info = tracker._recover(state, state, tracked, sequence["images"][1], None, None)
+            searched.append(k) if len(calls) > before else None
+            assert len(calls) > before or info["skipped"] == "backoff"
+            assert result is tracked
+        return searched
+
+    try:
+        tracker._failed_searches = tracker._searches_to_skip = 0
+        tracker._search = lambda st, lost_state, lost, *a: calls.append(len(calls)) or (
+            lost_state, lost, dict(outcome, source=None, windows=None))
+        assert run(34) == [1, 2, 4, 8, 16, 25, 34]
+        outcome["recovered"] = True  # the 8 skips due, then found: every lost frame after it is searched again
+        assert run(11) == [9, 10, 11]
+        outcome["recovered"] = False
+        run(4)
+        assert tracker._searches_to_skip > 0
+        _, result, _ = tracker.step(state, sequence["images"][1], recover=False)  # a frame not LOST starts over
+        assert int(result.status) != jt.Status.LOST, jt.Status(int(result.status)).name
+        assert tracker._searches_to_skip == 0 and run(2) == [1, 2]
+    finally:
+        vars(tracker).clear()
+        vars(tracker).update(saved)
+
+
+@pytest.mark.xdist_group("lines_sift")
 def test_the_recovery_restart_asks_for_windows_without_the_last_motion(sequence, lines_sift, monkeypatch):
     """The recovery's second step runs frames t+1 → t+1 from a found pose: no motion between a frame and itself, so
     `Tracker._restart` asks for windows around the found box without the last step's motion (`follow_motion=False`)."""

@@ -55,12 +55,15 @@ class RecoveryConfig(eqx.Module):
         refine: hypotheses refined by the lines (the best by score; the lost frame's own pose is always one).
         score_scale: px per segment of the hypotheses' score (coarse: the lines reach 19 · scale px).
         final_scale: px per segment of the refined candidates' score.
+        max_skip: backoff of a persistently lost object: after k searches in a row that recovered nothing, the next
+            min(2^(k−1) − 1, max_skip) lost frames are not searched (searched: lost frames 1, 2, 4, 8, 16, 25, 34,
+            ... of a run; a frame not LOST, or a RECOVERED one, starts over; 0: every lost frame). A skipped frame stays
+            LOST exactly as one whose search found nothing. Measured: README, "Finding it again".
         keyframes: re-detection first (`jaxtrack.track._keyframes`: SIFT keyframes with model points, PnP + RANSAC),
             or None: the hypotheses alone.
         hypotheses: when the keyframes find nothing, search the pose hypotheses scored on the lines (on by default:
-            on the loss experiment's sequences it RECOVERED 4 frames, 3 within 5 cm / 5° and one at 5°, which the
-            keyframes never did: mean within 5 cm / 5° 66.7 % with the keyframes alone → 77.2 %, 81.3 % with RBOT
-            resets; the 90-180° flips it found were
+            on the loss experiment's sequences it RECOVERED 3 frames, all within 5 cm / 5°, which the keyframes
+            never did: mean within 5 cm / 5° 66.7 % with the keyframes alone → 79.8 %, 81.3 % with RBOT resets; the 90-180° flips it found were
             refused by `margin` or by the step after it; experiments/results/recovery.md against
             recovery_keyframes_only.md). Earlier every pose it found (17 in three runs) was 70-174° off: a search far
             from the truth can still take a wrong pose.
@@ -86,6 +89,7 @@ class RecoveryConfig(eqx.Module):
     final_scale: int = eqx.field(static=True, default=2)
     margin: float = eqx.field(static=True, default=0.02)
     near_deg: float = eqx.field(static=True, default=45.0)
+    max_skip: int = eqx.field(static=True, default=8)
     keyframes: KeyframeConfig | None = eqx.field(static=True, default_factory=KeyframeConfig)
     hypotheses: bool = eqx.field(static=True, default=True)
 
@@ -94,6 +98,8 @@ class RecoveryConfig(eqx.Module):
             raise ValueError(f"RecoveryConfig.axis_subdivisions must be 0..3, got {self.axis_subdivisions}")
         if self.refine < 1 or self.score_scale < 1 or self.final_scale < 1:
             raise ValueError("RecoveryConfig: refine, score_scale and final_scale must be ≥ 1")
+        if self.max_skip < 0:
+            raise ValueError(f"RecoveryConfig.max_skip must be ≥ 0, got {self.max_skip}")
         if not 0.0 <= self.near_deg <= 180.0:
             raise ValueError(f"RecoveryConfig.near_deg must be in [0, 180], got {self.near_deg}")
         if any(not 0 < a <= 180 for a in self.angles_deg):

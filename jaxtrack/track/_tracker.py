@@ -367,6 +367,8 @@ class Tracker:
         self._recovery_warmup: threading.Thread | None = None
         self._recovery_warmup_error: BaseException | None = None  # what the background compile raised, if it did
         self._recovery_wait_left = RECOVERY_COMPILE_WAIT_S  # what lost frames may still wait for that compile
+        self._failed_searches = 0  # searches in a row that recovered nothing (`RecoveryConfig.max_skip`)
+        self._searches_to_skip = 0  # lost frames still to pass without a search
         self._compiled: set = set()  # (crop shape, fixed resolution, plan) whose step programs are compiled (`_compile_both`, `_start_precompile`)
         # The first step's programs compile in a background thread from `start` on (`_start_precompile`), beside the
         # start's own small programs; $JAXTRACK_PRECOMPILE=0: when the first step needs them.
@@ -617,6 +619,7 @@ class Tracker:
             raise ValueError("the initial pose puts the object outside every camera's image (T_world_root)")
         self.record_motion(None, None)
         self.last_good_pose, self.recoveries = T, 0
+        self._failed_searches = self._searches_to_skip = 0
         if self.plan is None:
             self._replan(T, theta)
         self.prepare()
@@ -751,7 +754,7 @@ class Tracker:
             (state at t+1, `FrameResult`, info: host timings in seconds, the crop, and "recovery": None, or what the
             search after a LOST frame found ("source", "pnp_inliers", "score", "own_score", "hypothesis", "recovered";
             "skipped": "compiling" when the hypotheses' program was still compiling in the background, "compile
-            failed: ..." when that compile raised; "turned_deg": the found pose's rotation from the lost one)).
+            failed: ..." when that compile raised, "backoff" when a persistently lost object was due no search; "turned_deg": the found pose's rotation from the lost one)).
 
         Raises:
             ValueError: malformed frames.
@@ -778,6 +781,8 @@ class Tracker:
                 and self.config.recovery.hypotheses):  # before a search of this frame: it must not compile in this thread
             self._warm_up_recovery(new_state, frames_j, params)
         recovery = None
+        if int(result.status) != Status.LOST:  # the object is back (or never lost): the search's backoff starts over
+            self._failed_searches = self._searches_to_skip = 0
         if recover and int(result.status) == Status.LOST and self.recovery_modality() is not None:
             rec_start = time.perf_counter()
             new_state, result, recovery = self._recover(state, new_state, result, frames, frames_j, params)
@@ -951,13 +956,26 @@ class Tracker:
             self._recovery_warmup.join()
 
     def _recover(self, state: TrackerState, lost_state: TrackerState, lost: FrameResult, frames, frames_j, params):
-        """`_search` with failures as values: an exception in the search (OpenCV, a compile) leaves the frame LOST."""
-        try:
-            return self._search(state, lost_state, lost, frames, frames_j, params)
-        except Exception as error:  # noqa: BLE001  (inside the tracking loop a failure is a status, never a raise)
-            frozen = eqx.tree_at(lambda s: (s.appearance, s.modalities), lost_state, (state.appearance, state.modalities))
-            return frozen, lost, {"recovered": False, "source": None, "error": repr(error),
+        """`_search` with failures as values: an exception in the search (OpenCV, a compile) leaves the frame LOST.
+        With the backoff of a persistently lost object (`RecoveryConfig.max_skip`), a frame due no search stays LOST
+        as one whose search found nothing ("skipped": "backoff")."""
+        frozen = eqx.tree_at(lambda s: (s.appearance, s.modalities), lost_state, (state.appearance, state.modalities))
+        if self._searches_to_skip > 0:
+            self._searches_to_skip -= 1
+            return frozen, lost, {"recovered": False, "source": None, "skipped": "backoff",
                                   "windows": self.windows(lost.T_world_root, lost.theta)}
+        try:
+            out = self._search(state, lost_state, lost, frames, frames_j, params)
+        except Exception as error:  # noqa: BLE001  (inside the tracking loop a failure is a status, never a raise)
+            out = frozen, lost, {"recovered": False, "source": None, "error": repr(error),
+                                 "windows": self.windows(lost.T_world_root, lost.theta)}
+        info = out[2]
+        if info["recovered"]:
+            self._failed_searches = 0
+        elif info.get("skipped") is None:  # searched and found nothing: the next search waits longer
+            self._failed_searches += 1
+            self._searches_to_skip = min(2 ** (self._failed_searches - 1) - 1, self.config.recovery.max_skip)
+        return out
 
     def _search(self, state: TrackerState, lost_state: TrackerState, lost: FrameResult, frames, frames_j, params):
         """After a LOST frame: search for the pose (`recover`), then the normal step again on frames t+1 → t+1 from
