@@ -76,6 +76,10 @@ def track(seq, mode: str, hypotheses: bool = True) -> list[dict]:
                      float(np.linalg.norm(rec["T_found"][:3, 3] - T_world[k][:3, 3]))})
         if mode == "RBOT resets" and failed:
             state = tracker.start(image, T_world[k])
+    # The recovery's background compile may outlast a short sequence: waited for here, so that it does not run on
+    # into the next sequence's tracker (whose own warm-up would then wait for it, and its first lost frames skip the
+    # search: each sequence as in a process of its own with the program compiled).
+    tracker.join_background()
     return rows
 
 

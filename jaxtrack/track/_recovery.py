@@ -57,13 +57,17 @@ class RecoveryConfig(eqx.Module):
         final_scale: px per segment of the refined candidates' score.
         max_skip: backoff of a persistently lost object: after k searches in a row that recovered nothing, the next
             min(2^(k−1) − 1, max_skip) lost frames are not searched (searched: lost frames 1, 2, 4, 8, 16, 25, 34,
-            ... of a run; a frame not LOST, or a RECOVERED one, starts over; 0: every lost frame). A skipped frame stays
-            LOST exactly as one whose search found nothing. Measured: README, "Finding it again".
+            ... of a run; a frame not LOST (OUT_OF_VIEW too), or a RECOVERED one, starts over; 0: every lost frame).
+            A skipped frame stays LOST exactly as one whose search found nothing (a refused step from a found pose
+            leaves the host state, SIFT's cached keypoints, as it was); a search that raised counts as one that found
+            nothing; a LOST frame stepped with `recover=False` neither uses a skip nor starts over. Measured: README,
+            "Finding it again".
         keyframes: re-detection first (`jaxtrack.track._keyframes`: SIFT keyframes with model points, PnP + RANSAC),
             or None: the hypotheses alone.
         hypotheses: when the keyframes find nothing, search the pose hypotheses scored on the lines (on by default:
             on the loss experiment's sequences it RECOVERED 3 frames, all within 5 cm / 5°, which the keyframes
-            never did: mean within 5 cm / 5° 66.7 % with the keyframes alone → 79.8 %, 81.3 % with RBOT resets; the 90-180° flips it found were
+            never did: mean within 5 cm / 5° 66.7 % with the keyframes alone → 79.8 % with the hypotheses and the
+            backoff (part of it chance, README), 81.3 % with RBOT resets; the 90-180° flips it found were
             refused by `margin` or by the step after it; experiments/results/recovery.md against
             recovery_keyframes_only.md). Earlier every pose it found (17 in three runs) was 70-174° off: a search far
             from the truth can still take a wrong pose.

@@ -131,8 +131,8 @@ class TrackerConfig(eqx.Module):
             (the working resolution is not measured on Table II).
         recovery: the search after a LOST frame (`RecoveryConfig`, `jaxtrack.track.Tracker.step`; where `recovers`
             holds), or None (the default): a lost frame is reported and tracking goes on from its pose. Off by default,
-            though on the loss experiment's sequences it recovered 4 frames (mean within 5 cm / 5° 67.2 % without
-            recovery → 79.8 %, 81.3 % with RBOT resets; experiments/results/recovery.md): on the recorded video it
+            though on the loss experiment's sequences it recovered 3 frames (mean within 5 cm / 5° 67.2 % without
+            recovery → 79.8 % with it, 81.3 % with RBOT resets; experiments/results/recovery.md): on the recorded video it
             recovered none and changed no result, and it costs a background compile after the first step (6.9 s of
             the 2 cores) and a search and a second step on a lost frame (166 ms median, 373 max; fewer and fewer
             on a persistently lost object, `RecoveryConfig.max_skip`).

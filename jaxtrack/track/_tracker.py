@@ -24,6 +24,7 @@ that step is OK).
 
 from __future__ import annotations
 
+import copy
 import os
 import threading
 import time
@@ -768,6 +769,7 @@ class Tracker:
         offsets, crop_shape, scales = (self.windows(state.T_world_root, state.theta, before) if on_screen.any()
                                        else (None, None, None))
         if offsets is None:  # behind a camera or outside every image: keep the pose, report it out of view
+            self._failed_searches = self._searches_to_skip = 0  # not LOST: the search's backoff starts over
             lost = eqx.tree_at(lambda s: s.images, state, to_device(self._frames_as_state(frames)))
             timings["total_s"] = time.perf_counter() - start
             return lost, self._out_of_view(state), {"timings": timings, "offsets": None, "crop_shape": None, "scales": None,
@@ -1049,12 +1051,14 @@ class Tracker:
             visible[c, y0:y1 + 1, x0:x1 + 1] = on_screen[c]
         restart = eqx.tree_at(lambda s: (s.T_world_root, s.images, s.data_weight, s.visible), state,
                               (T_found, frames_j, jnp.ones_like(state.data_weight), jnp.asarray(visible)))
+        host_cache = copy.deepcopy(self.host_cache)  # what the step from the found pose detects is kept only if taken
         new_state, result, _ = self._run_step(restart, frames, frames_j, offsets, params, crop_shape, scales)
         info["windows"] = (offsets, crop_shape, scales)
         info["confidence"] = float(result.confidence)
         found_ev, lost_ev = np.asarray(result.loss_evidence), np.asarray(lost.loss_evidence)
         static = [LOSS_EVIDENCE.index(n) for n in ("contour", "occluded", "appearance")]
         if int(result.status) != Status.OK or np.any(found_ev[static] > lost_ev[static]):
+            self.host_cache = host_cache  # refused: the lost step's host state (SIFT: frame t+1's keypoints) as it was
             return frozen, lost, info
         info["recovered"] = True
         self.recoveries += 1
