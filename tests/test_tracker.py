@@ -692,6 +692,36 @@ def test_a_persistently_lost_object_is_searched_less_and_less_often(sequence, li
 
 
 @pytest.mark.xdist_group("lines_sift")
+def test_a_refused_restart_leaves_the_host_state_as_it_was(sequence, lines_sift):
+    """The step from a found pose (`Tracker._restart`) detects SIFT on the frame again in the found box; when the pose
+    is refused (here: the lost frame's evidence set below anything a step reports), the tracker's host state (the
+    SIFT keypoints it keeps of that frame for the next step) is the lost step's, as if no search had run."""
+    tracker, state, _ = lines_sift
+    saved = dict(vars(tracker))
+    try:
+        _, lost, _ = tracker.step(state, sequence["images"][2], recover=False)
+        before = {name: {c: tuple(np.array(a, copy=True) for a in entry) for c, entry in cache.items()}
+                  for name, cache in tracker.host_cache.items()}
+        assert before, "the SIFT modality keeps frame t+1's keypoints"
+        unbeatable = eqx.tree_at(lambda r: r.loss_evidence, lost, -jnp.ones_like(lost.loss_evidence))
+        frames = tracker.check_frames(sequence["images"][2][None], "frames")
+        frames_j = jnp.asarray(tracker._frames_as_state(frames))
+        params = tracker.params_for(tracker.crop_shape)
+        found = _turned(state, 20.0).T_world_root
+        _, out_result, info = tracker._restart(state, state, unbeatable, frames, frames_j, params, found,
+                                               {"recovered": False})
+        assert not info.get("recovered") and out_result is unbeatable
+        after = tracker.host_cache
+        assert set(after) == set(before) and all(set(after[n]) == set(before[n]) for n in before)
+        for name, cache in before.items():
+            for c, entry in cache.items():
+                assert all(np.array_equal(a, b) for a, b in zip(entry, after[name][c])), (name, c)
+    finally:
+        vars(tracker).clear()
+        vars(tracker).update(saved)
+
+
+@pytest.mark.xdist_group("lines_sift")
 def test_the_recovery_restart_asks_for_windows_without_the_last_motion(sequence, lines_sift, monkeypatch):
     """The recovery's second step runs frames t+1 → t+1 from a found pose: no motion between a frame and itself, so
     `Tracker._restart` asks for windows around the found box without the last step's motion (`follow_motion=False`)."""
