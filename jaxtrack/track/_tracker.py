@@ -18,8 +18,8 @@ crop size class and raster plan; with a modality that reads host inputs (SIFT) i
 that the device computes the flow meanwhile (`Tracker.overlap_host`). After a LOST frame (rigid object, line
 modality) the keyframes' PnP and the hypothesis search (`jaxtrack.track._recovery.recover_pose`, compiled in the
 background after the first frame; lost frames wait for that compile at most `RECOVERY_COMPILE_WAIT_S` in all, and
-one lost while it still compiles stays LOST) look for the pose, and the normal step is run again from what it found (status RECOVERED when
-that step is OK).
+one lost while it still compiles stays LOST) look for the pose, and the normal step is run again from what it found
+(status RECOVERED when that step is OK).
 """
 
 from __future__ import annotations
@@ -370,7 +370,8 @@ class Tracker:
         self._recovery_wait_left = RECOVERY_COMPILE_WAIT_S  # what lost frames may still wait for that compile
         self._failed_searches = 0  # searches in a row that recovered nothing (`RecoveryConfig.max_skip`)
         self._searches_to_skip = 0  # lost frames still to pass without a search
-        self._compiled: set = set()  # (crop shape, fixed resolution, plan) whose step programs are compiled (`_compile_both`, `_start_precompile`)
+        # (crop shape, fixed resolution, plan) whose step programs are compiled (`_compile_both`, `_start_precompile`)
+        self._compiled: set = set()
         # The first step's programs compile in a background thread from `start` on (`_start_precompile`), beside the
         # start's own small programs; $JAXTRACK_PRECOMPILE=0: when the first step needs them.
         self.precompile_first_step = os.environ.get("JAXTRACK_PRECOMPILE", "1") != "0"
@@ -755,7 +756,8 @@ class Tracker:
             (state at t+1, `FrameResult`, info: host timings in seconds, the crop, and "recovery": None, or what the
             search after a LOST frame found ("source", "pnp_inliers", "score", "own_score", "hypothesis", "recovered";
             "skipped": "compiling" when the hypotheses' program was still compiling in the background, "compile
-            failed: ..." when that compile raised, "backoff" when a persistently lost object was due no search; "turned_deg": the found pose's rotation from the lost one)).
+            failed: ..." when that compile raised, "backoff" when a persistently lost object was due no search;
+            "turned_deg": the found pose's rotation from the lost one)).
 
         Raises:
             ValueError: malformed frames.
@@ -964,13 +966,11 @@ class Tracker:
         frozen = eqx.tree_at(lambda s: (s.appearance, s.modalities), lost_state, (state.appearance, state.modalities))
         if self._searches_to_skip > 0:
             self._searches_to_skip -= 1
-            return frozen, lost, {"recovered": False, "source": None, "skipped": "backoff",
-                                  "windows": self.windows(lost.T_world_root, lost.theta)}
+            return self._still_lost(frozen, lost, {"recovered": False, "source": None, "skipped": "backoff"})
         try:
             out = self._search(state, lost_state, lost, frames, frames_j, params)
         except Exception as error:  # noqa: BLE001  (inside the tracking loop a failure is a status, never a raise)
-            out = frozen, lost, {"recovered": False, "source": None, "error": repr(error),
-                                 "windows": self.windows(lost.T_world_root, lost.theta)}
+            out = self._still_lost(frozen, lost, {"recovered": False, "source": None, "error": repr(error)})
         info = out[2]
         if info["recovered"]:
             self._failed_searches = 0
@@ -978,6 +978,12 @@ class Tracker:
             self._failed_searches += 1
             self._searches_to_skip = min(2 ** (self._failed_searches - 1) - 1, self.config.recovery.max_skip)
         return out
+
+    def _still_lost(self, frozen: TrackerState, lost: FrameResult, info: dict) -> tuple:
+        """(`frozen`, `lost`, `info` with the windows at the lost pose): a frame that stays LOST after (or without) a
+        search."""
+        info["windows"] = self.windows(lost.T_world_root, lost.theta)
+        return frozen, lost, info
 
     def _search(self, state: TrackerState, lost_state: TrackerState, lost: FrameResult, frames, frames_j, params):
         """After a LOST frame: search for the pose (`recover`), then the normal step again on frames t+1 → t+1 from
@@ -999,8 +1005,7 @@ class Tracker:
                 if info["recovered"]:
                     return out
         if not self.config.recovery.hypotheses:
-            info["windows"] = self.windows(lost.T_world_root, theta)
-            return frozen, lost, info
+            return self._still_lost(frozen, lost, info)
         warmup = self._recovery_warmup
         if warmup is not None and warmup.is_alive() and self._recovery_wait_left > 0:
             # No frame waits for a compile: a frame lost while the hypotheses' program still compiles in the background
@@ -1014,20 +1019,19 @@ class Tracker:
             self._recovery_wait_left -= time.perf_counter() - wait_start
         if warmup is not None and (warmup.is_alive() or self._recovery_warmup_error is not None):
             info["skipped"] = "compiling" if warmup.is_alive() else f"compile failed: {self._recovery_warmup_error!r}"
-            info["windows"] = self.windows(lost.T_world_root, theta)
-            return frozen, lost, info
+            return self._still_lost(frozen, lost, info)
         found = self.recover(state, frames, lost.T_world_root, params)
         info.update({"score": float(found.score), "own_score": float(found.own_score), "hypothesis": int(found.index),
                      "T_found": np.asarray(found.T_world_root), "source": "region"})
-        turned = _rotation_deg(np.asarray(found.T_world_root, np.float64)[:3, :3], np.asarray(lost.T_world_root, np.float64)[:3, :3])
+        turned = _rotation_deg(np.asarray(found.T_world_root, np.float64)[:3, :3],
+                               np.asarray(lost.T_world_root, np.float64)[:3, :3])
         # Flips must beat the lost pose's refinement clearly; a near pose must only not be worse. The lost pose's own
         # refinement by the lines (hypothesis 0, at its own score) is then tried whenever it is the best: every
         # search that finds nothing better is followed by the normal step from that refinement (`_restart` decides).
         margin = 0.0 if turned <= self.config.recovery.near_deg else self.config.recovery.margin
         info["turned_deg"] = turned
         if not float(found.score) >= float(found.own_score) + margin:  # nothing better
-            info["windows"] = self.windows(lost.T_world_root, theta)
-            return frozen, lost, info
+            return self._still_lost(frozen, lost, info)
         return self._restart(state, frozen, lost, frames, frames_j, params, found.T_world_root, info)
 
     def _restart(self, state, frozen, lost, frames, frames_j, params, T_found, info):
@@ -1044,8 +1048,7 @@ class Tracker:
         offsets, crop_shape, scales = (self.windows(T_found, theta, boxes, follow_motion=False) if on_screen.any()
                                        else (None, None, None))
         if offsets is None:
-            info["windows"] = self.windows(lost.T_world_root, theta)
-            return frozen, lost, info
+            return self._still_lost(frozen, lost, info)
         visible = np.zeros((self.num_cameras, H, W), bool)  # the SIFT mask of "frame t" (= t+1): the found box
         for c, (x0, y0, x1, y1) in enumerate(np.clip(np.nan_to_num(boxes), 0, [W - 1, H - 1, W - 1, H - 1]).astype(int)):
             visible[c, y0:y1 + 1, x0:x1 + 1] = on_screen[c]
