@@ -106,13 +106,14 @@ def track(seq, inject_at: int | None = None, inject_deg: float = 0.0, seed: int 
 
     from jaxtrack.geometry import make_camera, rotation_error_deg, so3_exp, stack_cameras
     from jaxtrack.io import load_mesh
-    from jaxtrack.track import Tracker, success_mask
+    from jaxtrack.track import Tracker, TrackerConfig, success_mask
 
     view = seq.views[0]
     rig = stack_cameras([make_camera(view.K, view.width, view.height, view.T_cam_world[:3, :3], view.T_cam_world[:3, 3])])
     oid = min(seq.model_paths)
     T_world = np.einsum("ij,fjk->fik", np.linalg.inv(np.asarray(view.T_cam_world, np.float64)), view.T_cam_obj[oid])
-    tracker = Tracker(load_mesh(seq.model_paths[oid]), rig)
+    # The status's evidence on the frames as tracked, without the search after a LOST frame (`recovery` None).
+    tracker = Tracker(load_mesh(seq.model_paths[oid]), rig, config=TrackerConfig(recovery=None))
     state = tracker.start(view.read_frame(0)[None], T_world[0])
     rng = np.random.default_rng(seed)
     rows = []

@@ -4,9 +4,11 @@ The evaluation sequences of `loss_detection.py` (the frame-rate experiment's reg
 sequences at S = 2..4, the occluded-box preset, the teapot turntable; none of them seen by the loss
 calibration) are tracked three ways from the first true pose, camera 0, the tracker's defaults otherwise:
 
-- `no recovery`: the defaults (`TrackerConfig.recovery` None); a lost frame is reported and tracking goes on from its pose;
-- `recovery`: `TrackerConfig(recovery=RecoveryConfig())`: after a LOST frame the keyframes' PnP, then the pose
-  hypotheses (`--keyframes-only`: the PnP alone), then the normal step again (RECOVERED when that step is OK);
+- `no recovery`: `TrackerConfig(recovery=None)`; a lost frame is reported and tracking goes on from its pose;
+- `recovery`: the defaults (`TrackerConfig.recovery` = `RecoveryConfig()`): after a LOST frame the keyframes' PnP,
+  then the pose hypotheses (`--keyframes-only`: the PnP alone), then the normal step again (RECOVERED when that step
+  is OK); the search compiles in the background from the first frame reported UNCERTAIN or LOST
+  (`$JAXTRACK_RECOVERY_WARMUP=1`: from the first frame);
 - `RBOT resets`: no recovery; a frame beyond 5 cm / 5° is counted failed and the tracker restarts from the
   truth (the oracle of the RBOT protocol).
 

@@ -498,7 +498,7 @@ def _prepare_tracking(args, seq, out):
               **({"pose_prior": args.pose_prior} if getattr(args, "pose_prior", None) is not None else {}),
               **({"region": args.region} if getattr(args, "region", None) is not None else {}),
               **({"working_shape": args.working_shape} if getattr(args, "working_shape", "default") != "default" else {}),
-              **({"recovery": True} if getattr(args, "recover", False) else {})}
+              **({"recovery": args.recover} if getattr(args, "recover", None) is not None else {})}
     return kwargs, recorder
 
 
@@ -507,7 +507,7 @@ def _prepare_joint_tracking(args, seq, out, obj_ids: list[int]):
     from jaxtrack.io import load_trimesh, prepare_output_file
     from jaxtrack.track import JointOverlayRecorder, OverlayWriter
 
-    refused = [flag for flag, on in (("--reset-on-failure", args.reset_on_failure), ("--recover", getattr(args, "recover", False)),
+    refused = [flag for flag, on in (("--reset-on-failure", args.reset_on_failure), ("--recover", getattr(args, "recover", None)),
                                      ("--joint-limits", args.joint_limits)) if on]
     if refused:
         raise ValueError(f"{', '.join(refused)}: not available when several objects are tracked together "
@@ -1112,10 +1112,11 @@ def build_parser() -> argparse.ArgumentParser:
     track.add_argument("--fps", type=_number(float, 0, low_open=True), default=10.0, help="overlay video frame rate (default 10)")
     track.add_argument("--reset-on-failure", dest="reset_on_failure", action="store_true",
                        help="RBOT protocol: beyond 5 cm / 5° of scene_gt.json, count a failure and restart from the truth")
-    track.add_argument("--recover", action="store_true",
+    track.add_argument("--recover", action=argparse.BooleanOptionalAction, default=None,
                        help="after a LOST frame, search for the object (SIFT keyframes + PnP, then pose hypotheses scored "
                        "on the lines) and restart from what is found (status RECOVERED); rigid objects with the line "
-                       "modality; off by default (experiments/results/recovery.md)")
+                       "modality; on by default, except with --reset-on-failure and several objects "
+                       "(experiments/results/recovery.md)")
     track.add_argument("--init-pose", dest="init_pose", metavar="POSE", action="append",
                        help="first pose, model → first view's camera (mm), instead of scene_gt.json's (or of --init-points): "
                        "a .npy/.json/.txt file or 12 (3x4) / 16 (4x4) numbers, row-major, comma-separated; once per "
@@ -1177,7 +1178,8 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--working-shape", dest="working_shape", metavar="HxW|native", type=_working_shape,
                        default="default", help="as jaxtrack track")
     bench.add_argument("--pose-prior", dest="pose_prior", metavar="R,T[,RA,TA,F]", type=_prior_pair, help="as jaxtrack track")
-    bench.add_argument("--recover", action="store_true", help="as jaxtrack track")
+    bench.add_argument("--recover", action=argparse.BooleanOptionalAction, default=None,
+                       help="as jaxtrack track (on by default for the runs without resets)")
     bench.add_argument("--max-frames", dest="max_frames", metavar="N", type=_number(int, 2),
                        help="track only the first N frames of each sequence (after the frame step)")
     bench.add_argument("--no-cache", action="store_true", help="do not use the on-disk caches of compiled and traced programs ($JAXTRACK_CACHE_DIR)")

@@ -19,8 +19,9 @@ import pytest
 # The correspondence-line modality builds a sparse view model per new mesh (2562 views: about 30 s each on
 # 2 cores, cached in ~/.cache/jaxtrack/viewmodels); the suite's trackers use 162 views (same code path).
 os.environ.setdefault("JAXTRACK_VIEW_SUBDIVISIONS", "2")
-# Trackers compile their recovery program when a frame is first lost, not in the background after the first frame:
-# most of the suite's trackers never lose the object (tests/test_tracker.py checks the warm-up itself).
+# Trackers (recovery is on by default) compile their recovery program in the tracking thread when a frame is first
+# lost, not in the background at the first doubt, where whether a lost frame searched would depend on the timing
+# (tests/test_tracker.py checks the warm-up itself).
 os.environ.setdefault("JAXTRACK_RECOVERY_WARMUP", "0")
 # No exported programs on disk (`jaxtrack._exported`) even where a test runs `jaxtrack track` in this process: the
 # exported step compiles as another XLA program than the plain one the other tests share, and a program loaded from

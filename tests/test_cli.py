@@ -210,3 +210,14 @@ def test_demo_solver_only_keeps_the_pose_solver_demo(capsys):
     out = capsys.readouterr().out
     assert "1 part(s), 0 joint(s), 1 camera(s), 30 correspondences/frame" in out and "2 frames" in out
     assert "solver status OK on 2/2 frames" in out
+
+
+def test_recover_is_on_by_default_and_can_be_turned_off():
+    """`jaxtrack track` and `jaxtrack bench`: --recover / --no-recover, None (the default: on without resets)."""
+    from jaxtrack.cli import build_parser
+
+    parser = build_parser()
+    for command in ("track", "bench"):
+        assert parser.parse_args([command, "seq"]).recover is None
+        assert parser.parse_args([command, "seq", "--recover"]).recover is True
+        assert parser.parse_args([command, "seq", "--no-recover"]).recover is False

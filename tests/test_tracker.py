@@ -513,6 +513,56 @@ def test_the_recovery_program_is_compiled_before_a_frame_is_lost(sequence, lines
 
 
 @pytest.mark.xdist_group("lines_sift")
+def test_the_recovery_compile_starts_at_the_first_doubt(sequence, lines_sift):
+    """The default warm-up ("doubt"): a frame reported OK starts no background compile of the search; the first frame
+    reported UNCERTAIN or LOST does, before its own search (so a run that never doubts pays nothing)."""
+    tracker, state, tracked = lines_sift
+    saved = dict(vars(tracker))
+    saved_keyframes = None if tracker.keyframes is None else (list(tracker.keyframes.keyframes), list(tracker.keyframes.tried))
+    try:
+        tracker.warm_up_recovery, tracker._recovery_warmup = "doubt", None
+        assert int(tracked.status) == jt.Status.OK
+        assert not tracker._wants_recovery_warmup(tracked)
+        ok_state, ok, _ = tracker.step(state, sequence["images"][2])
+        assert int(ok.status) == jt.Status.OK and tracker._recovery_warmup is None
+        _, jumped, _ = tracker.step(_turned(ok_state, 50.0), sequence["images"][3], recover=False)
+        assert int(jumped.status) in (jt.Status.UNCERTAIN, jt.Status.LOST), jt.Status(int(jumped.status)).name
+        assert tracker._recovery_warmup is None  # recover=False: this frame searches nothing, so nothing compiles for it
+        _, lost, info = tracker.step(_turned(ok_state, 50.0), sequence["images"][3])
+        thread = tracker._recovery_warmup
+        assert thread is not None and thread.name == "jaxtrack-recovery-compile"
+        assert info["recovery"] is not None or int(lost.status) == jt.Status.UNCERTAIN
+        thread.join()
+        with pytest.raises(ValueError, match="warm_up_recovery"):
+            tracker.warm_up_recovery, tracker._recovery_warmup = "always", None
+            tracker._wants_recovery_warmup(lost)
+    finally:
+        vars(tracker).clear()
+        vars(tracker).update(saved)
+        if saved_keyframes is not None:
+            tracker.keyframes.keyframes, tracker.keyframes.tried = saved_keyframes
+
+
+def test_recovery_is_on_by_default_and_the_step_program_does_not_depend_on_it(sequence):
+    """Issue 24: without resets the search after a LOST frame is what runs (`TrackerConfig.recovery` on by default;
+    `track_sequence` turns it off for the RBOT protocol's oracle resets, and when asked); the compiled step sees a
+    config without it, so trackers with and without recovery share one step program (and one on-disk entry)."""
+    from jaxtrack.track import RecoveryConfig
+    from jaxtrack.track._sequence import _config_from, _recovers
+
+    assert isinstance(TrackerConfig().recovery, RecoveryConfig) and TrackerConfig().recovers()
+    assert not TrackerConfig(recovery=None).recovers()
+    assert (_recovers(None, False), _recovers(None, True), _recovers(False, False), _recovers(True, True)) == (True, False, False, True)
+    assert _config_from(("region", "flow", "sift"), None, "default", recovery=False).recovery is None
+    on = Tracker(sequence["mesh"], sequence["camera"])
+    off = Tracker(sequence["mesh"], sequence["camera"], config=TrackerConfig(recovery=None))
+    assert on.config.recovers() and not off.config.recovers()
+    assert on.setup().config.recovery is None and on.setup().config == off.setup().config
+    assert hash(on.setup().config) == hash(off.setup().config)
+    assert on.setup().config is on.setup().config  # made once per config object
+
+
+@pytest.mark.xdist_group("lines_sift")
 def test_hypothesis_scores_under_vmap_equal_one_at_a_time(sequence, lines_sift):
     """Issue 24: the recovery scores every hypothesis in one vmapped call; each score equals the same pose scored
     alone, and the search's own scores are those (2 references and 232 rotations each)."""
@@ -716,6 +766,34 @@ def test_a_refused_restart_leaves_the_host_state_as_it_was(sequence, lines_sift)
         for name, cache in before.items():
             for c, entry in cache.items():
                 assert all(np.array_equal(a, b) for a, b in zip(entry, after[name][c])), (name, c)
+    finally:
+        vars(tracker).clear()
+        vars(tracker).update(saved)
+
+
+@pytest.mark.xdist_group("lines_sift")
+def test_a_lost_frame_not_recovered_goes_on_as_without_recovery(sequence, lines_sift):
+    """A LOST frame whose search finds nothing (here: due none by the backoff) leaves the state the step made, colour
+    histograms and appearance model learnt from it, exactly as `recover=False` does: recovery changes a run only
+    where it RECOVERS a frame (kept as they were, the noisy moving camera and the noise table lost frames earlier)."""
+    tracker, state, _ = lines_sift
+    saved = dict(vars(tracker))
+    try:
+        jumped = _turned(state, 50.0)
+        plain_state, plain, _ = tracker.step(jumped, sequence["images"][2], recover=False)
+        assert int(plain.status) == jt.Status.LOST, jt.Status(int(plain.status)).name
+        vars(tracker).clear()
+        vars(tracker).update(saved)
+        tracker._searches_to_skip = 1  # the backoff: this lost frame is due no search
+        lost_state, lost, info = tracker.step(jumped, sequence["images"][2])
+        assert info["recovery"]["skipped"] == "backoff" and int(lost.status) == jt.Status.LOST
+        leaves = jax.tree.leaves(eqx.filter(plain_state, eqx.is_array))
+        assert len(leaves) == len(jax.tree.leaves(eqx.filter(lost_state, eqx.is_array)))
+        for a, b in zip(leaves, jax.tree.leaves(eqx.filter(lost_state, eqx.is_array))):
+            assert np.array_equal(np.asarray(a), np.asarray(b))
+        hist = lambda st: st.modalities[tracker.recovery_modality()].histograms
+        assert not all(np.array_equal(np.asarray(a), np.asarray(b))
+                       for a, b in zip(jax.tree.leaves(hist(lost_state)), jax.tree.leaves(hist(jumped))))  # learnt
     finally:
         vars(tracker).clear()
         vars(tracker).update(saved)

@@ -43,7 +43,7 @@ class BenchSettings:
     region: str | None = None
     working_shape: object = "default"
     pose_prior: tuple | None = None
-    recovery: bool = False
+    recovery: bool | None = None  # None: on for the runs without resets (`track_sequence`)
     max_frames: int | None = None
     x64: bool = False
 

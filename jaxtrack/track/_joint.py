@@ -142,7 +142,8 @@ class JointTracker:
                                 (jnp.where(hidden, 0.0, state.data_weight).astype(state.data_weight.dtype),
                                  state.visible & ~hidden))
             prep_s = time.perf_counter() - t0
-            new, result, info = tracker.step(state, frames)
+            # No search after a LOST frame: it would score the lines the other objects hide (not measured).
+            new, result, info = tracker.step(state, frames, recover=False)
             t1 = time.perf_counter()
             # Only a pose the object's own evidence supports hides the others (a lost object's estimate may float in
             # front of another and take its lines away).

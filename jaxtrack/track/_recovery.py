@@ -16,10 +16,11 @@ for a pose the colours cannot tell from any other. The refined candidates are co
 scale of the lines' schedule (`final_scale`).
 
 One compiled program per tracker (rig, mesh, view model and these static settings); `Tracker` compiles it in a
-background thread after the first step when recovery is on (`Tracker.warm_up_recovery`), so no frame waits for
-the compile: lost frames wait for it at most `jaxtrack.track._tracker.RECOVERY_COMPILE_WAIT_S` (1 s, a trace and a
-cache hit) in all, and a frame lost while it still compiles stays LOST without the search. With the warm-up off
-($JAXTRACK_RECOVERY_WARMUP=0) the first lost frame compiles it, and `Tracker.recover` called directly waits for it.
+background thread at the first frame it reports UNCERTAIN or LOST (`Tracker.warm_up_recovery`; recovery is on by
+default, `TrackerConfig.recovery`), so no frame waits for the compile: lost frames wait for it at most
+`jaxtrack.track._tracker.RECOVERY_COMPILE_WAIT_S` (1 s, a trace and a cache hit) in all, and a frame lost while it
+still compiles stays LOST without the search. With the warm-up off ($JAXTRACK_RECOVERY_WARMUP=0) the first lost
+frame compiles it, and `Tracker.recover` called directly waits for it.
 """
 
 from __future__ import annotations
@@ -68,13 +69,13 @@ class RecoveryConfig(eqx.Module):
             on the loss experiment's sequences it RECOVERED 3 frames, all within 5 cm / 5°, which the keyframes
             never did: mean within 5 cm / 5° 66.7 % with the keyframes alone → 79.8 % with the hypotheses and the
             backoff (part of it chance, README), 81.3 % with RBOT resets; the 90-180° flips it found were
-            refused by `margin` or by the step after it; experiments/results/recovery.md against
+            refused by `margin` or by the step after it; experiments/results/recovery_opt_in.md against
             recovery_keyframes_only.md). Earlier every pose it found (17 in three runs) was 70-174° off: a search far
             from the truth can still take a wrong pose.
         margin: a found pose turned by more than `near_deg` from the lost pose is taken only when its score beats
             the lost frame's own refined pose by this much (the score cannot tell a symmetric object's turned poses
             apart: a 180° flip of a box scores within 0.01 of the right pose; measured in
-            experiments/results/recovery.md).
+            experiments/results/recovery_opt_in.md).
         near_deg: a found pose within this rotation of the lost pose needs only to score no worse than the lost
             pose's own refinement; the normal step from it then decides (`Tracker._restart`). So the lost pose's own
             refinement by the lines is tried whenever nothing scores better (a lost frame then costs a search and a

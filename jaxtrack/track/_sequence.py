@@ -144,14 +144,18 @@ def _views_and_rig(seq, cameras):
     return views, rig
 
 
-def _config_from(cues, region, working_shape, recovery: bool = False) -> TrackerConfig:
+def _config_from(cues, region, working_shape, recovery: bool = True) -> TrackerConfig:
     """The `TrackerConfig` of a run's keyword arguments ("default" working shape: the config's own)."""
     extra = {} if region is None else {"region_modality": region}
-    if recovery:
-        extra["recovery"] = RecoveryConfig()
+    extra["recovery"] = RecoveryConfig() if recovery else None
     if not (isinstance(working_shape, str) and working_shape == "default"):
         extra["working_shape"] = None if working_shape is None else tuple(int(v) for v in working_shape)
     return TrackerConfig(cues=tuple(cues), **extra)
+
+
+def _recovers(recovery: bool | None, reset_on_failure: bool) -> bool:
+    """Whether a run searches after a LOST frame: as asked, else (None) unless the oracle resets it (RBOT protocol)."""
+    return (not reset_on_failure) if recovery is None else bool(recovery)
 
 
 def _frame_reader(seq, views):
@@ -182,7 +186,7 @@ def track_sequence(
     region: str | None = None,
     working_shape: tuple[int, int] | None | str = "default",
     reset_on_failure: bool = False,
-    recovery: bool = False,
+    recovery: bool | None = None,
     max_frames: int | None = None,
     progress: bool = True,
     on_frame: Callable[[FrameRecord], object] | None = None,
@@ -207,8 +211,9 @@ def track_sequence(
         pose_prior: (rotation, translation) relative stiffnesses of the pose prior (default
             `jaxtrack.track.DEFAULT_POSE_PRIOR`; ignored when `params` is given).
         reset_on_failure: the RBOT protocol (needs ground truth for every frame).
-        recovery: search after a LOST frame (`TrackerConfig.recovery` = `RecoveryConfig()`; ignored when `config` is
-            given).
+        recovery: search after a LOST frame (`TrackerConfig.recovery` = `RecoveryConfig()`) or not (None); None
+            (the default): on, except with `reset_on_failure` (the oracle's resets are measured without the tracker's
+            own). Ignored when `config` is given.
         max_frames: track only the first frames.
         progress: show a progress bar with the frame rate.
         on_frame: called with a `FrameRecord` after every frame (the first included), while tracking,
@@ -263,7 +268,7 @@ def track_sequence(
     if joint_limits and articulated is None:
         raise ValueError(f"joint_limits: obj_id {obj_id} is rigid ({model_path.name}); limits come from a URDF")
     if config is None:
-        config = _config_from(cues, region, working_shape, recovery)
+        config = _config_from(cues, region, working_shape, _recovers(recovery, reset_on_failure))
     limits = (articulated["lower"], articulated["upper"]) if joint_limits else None
     tracker = Tracker(mesh, rig, model=model, config=config, params=params, joint_limits=limits,
                       **({} if pose_prior is None else {"pose_prior": pose_prior}))
@@ -411,7 +416,8 @@ def track_objects(
     n = seq.num_frames if max_frames is None else min(seq.num_frames, int(max_frames))
     T_cam0_world = np.asarray(view0.T_cam_world, np.float64)
     if config is None:
-        config = _config_from(cues, region, working_shape)
+        # The search after a LOST frame does not see the other objects (their outlines hide lines): off here.
+        config = _config_from(cues, region, working_shape, recovery=False)
     trackers, starts = [], []
     for o in obj_ids:
         path = seq.model_paths[o]

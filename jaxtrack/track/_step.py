@@ -130,12 +130,17 @@ class TrackerConfig(eqx.Module):
             crops cut at the native resolution in size classes (one compilation per class); chains keep them
             (the working resolution is not measured on Table II).
         recovery: the search after a LOST frame (`RecoveryConfig`, `jaxtrack.track.Tracker.step`; where `recovers`
-            holds), or None (the default): a lost frame is reported and tracking goes on from its pose. Off by default,
-            though on the loss experiment's sequences it recovered 3 frames (mean within 5 cm / 5° 67.2 % without
-            recovery → 79.8 % with it, 81.3 % with RBOT resets; experiments/results/recovery.md): on the recorded video it
-            recovered none and changed no result, and it costs a background compile after the first step (6.9 s of
-            the 2 cores) and a search and a second step on a lost frame (166 ms median, 373 max; fewer and fewer
-            on a persistently lost object, `RecoveryConfig.max_skip`).
+            holds: the lines and a rigid object), on by default; None: a lost frame is reported and tracking goes on
+            from its pose. A frame the search does not recover goes on as without it. On the loss experiment's
+            sequences, mean within 5 cm / 5°: 67.2 % without recovery, 77.7 % with the search compiled from the
+            first frame, 69.4 % in a fresh process with the default warm-up at the first doubt, 81.3 % with RBOT
+            resets (experiments/results/recovery_first_frame_warmup.md, recovery.md); the turntable truck 6.75° →
+            5.39°; on the recorded video, the presets, the noise table and the moving camera it recovered no frame and
+            changed no pose (README, "Finding it again"). It costs a search and a second step on a lost frame (171 ms
+            median, 265 max; fewer and fewer on a persistently lost object, `RecoveryConfig.max_skip`) and a
+            background compile of the search (6.9 s of the 2 cores in a fresh process; a load from the on-disk cache
+            after that), started at the first frame reported UNCERTAIN or LOST (`Tracker.warm_up_recovery`). The
+            compiled step does not depend on it (`Tracker.setup`: one step program with and without recovery).
     """
 
     cues: tuple = eqx.field(static=True, default=CUES)
@@ -154,7 +159,7 @@ class TrackerConfig(eqx.Module):
     occlusion_config: OcclusionConfig = eqx.field(static=True, default_factory=OcclusionConfig)
     sift_mode: str = eqx.field(static=True, default="surface")
     working_shape: tuple | str | None = eqx.field(static=True, default="auto")
-    recovery: RecoveryConfig | None = eqx.field(static=True, default=None)
+    recovery: RecoveryConfig | None = eqx.field(static=True, default_factory=RecoveryConfig)
 
     def __check_init__(self):
         cues = tuple(self.cues)
