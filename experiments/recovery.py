@@ -97,7 +97,11 @@ def report(command: str, elapsed_s: float, load, runs: dict, hypotheses: bool = 
              (f"`{command}`: {elapsed_s / 60:.1f} min, load average {load[0][0]:.2f} → {load[1][0]:.2f} (2 cores); camera 0, "
              "the tracker's defaults (lines, flow, SIFT, occlusion detection, 96x128 working resolution); the recovery "
              + ("searches the keyframes' PnP, then the pose hypotheses." if hypotheses else "searches the keyframes' PnP alone "
-                "(`--keyframes-only`).")), "",
+                "(`--keyframes-only`).")
+             + " Compiled programs are kept on disk, as `jaxtrack track` keeps them (not with --quick): the search compiles "
+             "in the background at a tracker's first doubt, and a frame lost before it is ready (6.9 s for a compile, "
+             "under 1 s for a load from the cache of an earlier run) is not searched (\"lost while the search's program "
+             "still compiled\" below)."), "",
              ("Success: frames within 5 cm / 5° (frames 1..). Failure runs: consecutive frames beyond the bound, "
              "as (frames until back within it; `end` when the sequence ended first)."), "",
              "| sequence | frames | no recovery | recovery | RBOT resets | recovery − resets | failure runs: no recovery | recovery |",
@@ -160,7 +164,7 @@ def main(argv=None):
 
     from jaxtrack.io import read_sequence
 
-    clock = start_experiment(cache=False)
+    clock = start_experiment(cache=not args.quick)  # as `jaxtrack track`: a rerun loads the search from disk
     seq_dir = pathlib.Path(args.seq_dir) if args.seq_dir else pathlib.Path(tempfile.mkdtemp(prefix="recovery_"))
     runs: dict = {}
     try:

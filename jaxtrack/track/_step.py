@@ -132,12 +132,13 @@ class TrackerConfig(eqx.Module):
         recovery: the search after a LOST frame (`RecoveryConfig`, `jaxtrack.track.Tracker.step`; where `recovers`
             holds: the lines and a rigid object), on by default; None: a lost frame is reported and tracking goes on
             from its pose. A frame the search does not recover goes on as without it. On the loss experiment's
-            sequences, mean within 5 cm / 5°: 67.2 % without recovery, 77.7 % with the search compiled from the
-            first frame, 69.4 % in a fresh process with the default warm-up at the first doubt, 81.3 % with RBOT
-            resets (experiments/results/recovery_first_frame_warmup.md, recovery.md); the turntable truck 6.75° →
+            sequences, mean within 5 cm / 5°: 67.2 % without recovery, 77.7 % with it (the search loaded from the
+            on-disk cache, or compiled from the first frame), 69.4 % with an empty cache (the search compiles at the
+            first doubt), 81.3 % with RBOT resets (experiments/results/recovery.md, recovery_empty_cache.md,
+            recovery_first_frame_warmup.md); the turntable truck 6.75° →
             5.39°; on the recorded video, the presets, the noise table and the moving camera it recovered no frame and
-            changed no pose (README, "Finding it again"). It costs a search and a second step on a lost frame (171 ms
-            median, 265 max; fewer and fewer on a persistently lost object, `RecoveryConfig.max_skip`) and a
+            changed no pose (README, "Finding it again"). It costs a search and a second step on a lost frame (154 ms
+            median, 256 max; fewer and fewer on a persistently lost object, `RecoveryConfig.max_skip`) and a
             background compile of the search (6.9 s of the 2 cores in a fresh process; a load from the on-disk cache
             after that), started at the first frame reported UNCERTAIN or LOST (`Tracker.warm_up_recovery`). The
             compiled step does not depend on it (`Tracker.setup`: one step program with and without recovery).
