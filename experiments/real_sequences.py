@@ -42,11 +42,11 @@ M3T = {
 
 
 def run_one(seq: str, cues: str, region: str, prior: str, out_dir: pathlib.Path, max_frames: int | None,
-            working: str | None = None, recover: bool = False) -> dict:
+            working: str | None = None, recover: bool | None = None) -> dict:
     """`jaxtrack track` in a subprocess, then its CSV scored; returns the row."""
     folder, obj = SEQUENCES[seq]
     path = SHARED / "data" / "sequences" / folder
-    tag = f"{seq}_{cues}_{region}_{prior}_{working}{'_recover' if recover else ''}".replace("+", "-").replace(",", "_")
+    tag = f"{seq}_{cues}_{region}_{prior}_{working}{'' if recover is None else f'_recover{int(recover)}'}".replace("+", "-").replace(",", "_")
     csv = out_dir / f"{tag}.csv"
     cmd = [sys.executable, "-m", "jaxtrack.cli", "track", str(path), "-o", str(csv), "--obj-id", str(obj),
            "--cues", cues.replace("+", ","), "--pose-prior", prior, "--region", region, "--quiet"]
@@ -54,8 +54,8 @@ def run_one(seq: str, cues: str, region: str, prior: str, out_dir: pathlib.Path,
         cmd += ["--max-frames", str(max_frames)]
     if working:
         cmd += ["--working-shape", working]
-    if recover:
-        cmd += ["--recover"]
+    if recover is not None:  # None: the CLI's default (on, rigid objects with the lines)
+        cmd += ["--recover" if recover else "--no-recover"]
     t = time.time()
     proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
     wall = time.time() - t
@@ -75,7 +75,7 @@ def run_one(seq: str, cues: str, region: str, prior: str, out_dir: pathlib.Path,
             continue
         steps.append(fr["timings"].get("total_s", np.nan))
     region = region if not working else f"{region} @ {working}"
-    region = region + (" + recovery" if recover else "")
+    region = region + {None: "", True: " + recovery", False: " (no recovery)"}[recover]
     return {
         "seq": seq, "cues": cues, "region": region, "prior": prior, "frames": int(later.sum()),
         "success": 100.0 * float(np.mean(ev.success[later])), "rot": float(np.nanmean(ev.rot_deg[later])),
@@ -96,7 +96,8 @@ def report(rows, args, load0, load1, minutes) -> str:
         "",
         ("Success = frames 1.. within 5 cm / 5° of the reference (visp_rbt: approximate reference poses); ms / frame = "
         "median host time of the frames that did not compile a new crop class; compiles = crop classes; flagged = "
-        "frames reported LOST or UNCERTAIN."),
+        "frames reported LOST or UNCERTAIN. jaxtrack searches after a LOST frame (`jaxtrack track`'s default, "
+        "from 2026-11-28; rows marked \"(no recovery)\": `--no-recover`)."),
         "",
         ("| sequence | tracker | cues | region | pose prior (R, T) | success | mean rot ° | mean trans mm | first failure | "
         "ms / frame | compiles | flagged |"),
@@ -129,7 +130,8 @@ def main(argv=None) -> int:
     ap.add_argument("--max-frames", type=int, default=None)
     ap.add_argument("--working-shape", default=None,
                     help="comma-separated crop working resolutions for jaxtrack track --working-shape (HxW or native)")
-    ap.add_argument("--recover", action="store_true", help="track with `jaxtrack track --recover` (the search after a LOST frame)")
+    ap.add_argument("--recover", action=argparse.BooleanOptionalAction, default=None,
+                    help="pass `jaxtrack track --recover` / `--no-recover` (the search after a LOST frame; default: the CLI's, on)")
     ap.add_argument("--out", default=str(RESULTS / "real_sequences.md"))
     ap.add_argument("--quick", action="store_true", help="smoke run: 4 frames of the tea box, region only")
     args = ap.parse_args(argv)

@@ -97,6 +97,18 @@ def test_joint_tracker_refuses_trackers_on_different_rigs():
         JointTracker([])
 
 
+def test_joint_tracker_turns_off_the_search_after_a_lost_frame():
+    """Each object's `Tracker` recovers by default; in a joint run the search would score lines the other objects
+    hide, so `JointTracker` turns it off (and with it the keyframes `start` would take)."""
+    mesh = jt.render.make_mesh(np.eye(3) * 10, np.array([[0, 1, 2]]))
+    cam = jt.geometry.make_camera(np.array([[100.0, 0, 32], [0, 100, 24], [0, 0, 1]]), 64, 48)
+    trackers = [jt.Tracker(mesh, cam), jt.Tracker(mesh, cam)]
+    assert all(t.config.recovers() for t in trackers)
+    JointTracker(trackers)
+    assert not any(t.config.recovers() for t in trackers)
+    assert trackers[0].setup().config == jt.Tracker(mesh, cam).setup().config  # the same step program as before
+
+
 @pytest.mark.parametrize("argv, message", [
     (["--obj-id", "1,2", "--reset-on-failure"], "--reset-on-failure: not available when several objects"),
     (["--obj-id", "1,2", "--init-pose", "1 0 0 0 0 1 0 0 0 0 1 500"], "--init-pose given 1 time"),

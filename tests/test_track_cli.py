@@ -50,7 +50,7 @@ class _FakeTracker:
     truth = None  # callable frame index -> (4, 4) true world pose, set by the fixture
 
     def __init__(self, mesh, cameras, model=None, config=None, params=None, joint_limits=None):
-        self.cues, self.num_cameras, self.k = config.cues, cameras.K.shape[0], 0
+        self.cues, self.num_cameras, self.k, self.config = config.cues, cameras.K.shape[0], 0, config
         _FakeTracker.built.append(self)
 
     def start(self, frames, T_world_root, theta=None):
@@ -443,3 +443,13 @@ def test_real_track_and_eval_end_to_end(seq_dir, tmp_path, capsys):
     truth = read_sequence(seq_dir).views[0].T_cam_obj[1][1]
     assert printed == pytest.approx(float(rotation_error_deg(rows[1][4][:3, :3], truth[:3, :3])), abs=1e-3)
     print(f"real track (region, 2 frames) {seconds:.1f} s; frame 1 rotation error {printed}°")
+
+
+@pytest.mark.parametrize("flags, searches", [((), True), (("--no-recover",), False), (("--reset-on-failure",), False),
+                                             (("--reset-on-failure", "--recover"), True), (("--recover",), True)])
+def test_track_searches_after_a_lost_frame_unless_reset_or_told_not_to(seq_dir, fake, tmp_path, flags, searches):
+    """`jaxtrack track` builds its tracker with the search after a LOST frame (`TrackerConfig.recovery`) by default,
+    without it for --no-recover and for the RBOT protocol's resets (the oracle), with it when asked."""
+    assert main(["track", str(seq_dir), "-o", str(tmp_path / "r.csv"), "--quiet", "--no-cache", *flags]) == 0
+    (tracker,) = fake.built
+    assert (tracker.config.recovery is not None) == searches, (flags, tracker.config.recovery)

@@ -521,6 +521,9 @@ def test_the_recovery_compile_starts_at_the_first_doubt(sequence, lines_sift):
     saved_keyframes = None if tracker.keyframes is None else (list(tracker.keyframes.keyframes), list(tracker.keyframes.tried))
     try:
         tracker.warm_up_recovery, tracker._recovery_warmup = "doubt", None
+        searched_with_warmup = []  # at each search: had the frame started the background compile already?
+        search = tracker._search
+        tracker._search = lambda *a: (searched_with_warmup.append(tracker._recovery_warmup is not None), search(*a))[1]
         assert int(tracked.status) == jt.Status.OK
         assert not tracker._wants_recovery_warmup(tracked)
         ok_state, ok, _ = tracker.step(state, sequence["images"][2])
@@ -532,6 +535,7 @@ def test_the_recovery_compile_starts_at_the_first_doubt(sequence, lines_sift):
         thread = tracker._recovery_warmup
         assert thread is not None and thread.name == "jaxtrack-recovery-compile"
         assert info["recovery"] is not None or int(lost.status) == jt.Status.UNCERTAIN
+        assert searched_with_warmup == ([True] if info["recovery"] is not None else []), searched_with_warmup
         thread.join()
         with pytest.raises(ValueError, match="warm_up_recovery"):
             tracker.warm_up_recovery, tracker._recovery_warmup = "always", None

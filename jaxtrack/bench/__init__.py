@@ -71,7 +71,9 @@ def _check_request(out: pathlib.Path, request: dict) -> None:
         ours = {"dataset": request["dataset"], "layout": request["layout"], **request["tracker"]}
         for key, value in ours.items():
             if theirs.get(key) != value:
-                raise ValueError(f"-o {out}: its bench.json has {key} = {theirs.get(key)!r}, this bench {value!r}; "
+                hint = (" (recovery: None = on without resets, the default from 2026-11-28; --recover / --no-recover "
+                        "set it)") if key == "recovery" else ""
+                raise ValueError(f"-o {out}: its bench.json has {key} = {theirs.get(key)!r}, this bench {value!r}{hint}; "
                                  "use another -o folder (or remove it) to bench something else")
     path.write_text(json.dumps(request, indent=1))
 
@@ -169,7 +171,8 @@ def run_bench(dataset: str | os.PathLike, out: str | os.PathLike, settings: Benc
     header = [f"Dataset: `{request['dataset']}` ({request['layout']} layout, {len(items)} sequences); protocol "
               f"{settings.protocol}; cues {'+'.join(settings.cues)}"
               + (f", region {settings.region}" if settings.region else "")
-              + (f", pose prior {list(settings.pose_prior)}" if settings.pose_prior else "") + ".",
+              + (f", pose prior {list(settings.pose_prior)}" if settings.pose_prior else "")
+              + ("; the runs without resets search after a LOST frame (with the lines)" if settings.recovery is not False else "") + ".",
               f"Ran {len(todo)} job(s) in {wall:.1f} s on {executor}; {len(skipped)} found finished; {len(failed)} failed.",
               ("Success: frames after the first within 5 cm / 5° of the truth. AUC: ADD / ADD-S accuracy over thresholds "
               "0-10 cm. ms/frame: median of the steps after the second frame (the workers ran side by side).")]

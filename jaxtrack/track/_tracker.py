@@ -16,8 +16,8 @@ and matching (OpenCV, one thread per camera and core), and a re-plan of the rast
 crop size class and raster plan; with a modality that reads host inputs (SIFT) its first part, `start_frame`
 (crops, render at χ_t, flow), is a program of its own, dispatched before the host detects and matches so
 that the device computes the flow meanwhile (`Tracker.overlap_host`). After a LOST frame (rigid object, line
-modality) the keyframes' PnP and the hypothesis search (`jaxtrack.track._recovery.recover_pose`, compiled in the
-background after the first frame; lost frames wait for that compile at most `RECOVERY_COMPILE_WAIT_S` in all, and
+modality; on by default) the keyframes' PnP and the hypothesis search (`jaxtrack.track._recovery.recover_pose`,
+compiled in the background at the first frame reported UNCERTAIN or LOST; lost frames wait for that compile at most `RECOVERY_COMPILE_WAIT_S` in all, and
 one lost while it still compiles stays LOST) look for the pose, and the normal step is run again from what it found
 (status RECOVERED when that step is OK).
 """
@@ -97,6 +97,11 @@ def _join_background_compiles() -> None:
     for thread in list(_BACKGROUND_COMPILES):
         thread.join()
 
+
+# $JAXTRACK_RECOVERY_WARMUP → `Tracker.warm_up_recovery` (anything else: "doubt").
+_WARMUP_ENV = {"0": "off", "false": "off", "off": "off", "1": "first frame", "true": "first frame",
+               "first frame": "first frame"}
+_WARMUP_MODES = ("doubt", "first frame", "off")
 
 # Longest time a tracker's lost frames wait, all of them together, for the recovery program's background compile
 # (`Tracker._search`): enough for a trace and a cache hit (0.3-0.4 s measured), not for a compile (6.9 s).
@@ -405,7 +410,7 @@ class Tracker:
         self._precompile: threading.Thread | None = None
         # Compile the recovery program in the background at the first doubt (`_warm_up_recovery`); "1": after the
         # first frame; "0" compiles it when first needed instead.
-        self.warm_up_recovery = {"0": "off", "1": "first frame"}.get(os.environ.get("JAXTRACK_RECOVERY_WARMUP", ""), "doubt")
+        self.warm_up_recovery = _WARMUP_ENV.get(os.environ.get("JAXTRACK_RECOVERY_WARMUP", "").strip().lower(), "doubt")
         # Windows around where the last step's motion carries the object (`_crop_boxes`);
         # $JAXTRACK_CROP_FOLLOWS_MOTION=0: around the box at t with 1.5x the motion on every side (the old rule).
         self.crop_follows_motion = os.environ.get("JAXTRACK_CROP_FOLLOWS_MOTION", "1") != "0"
@@ -648,6 +653,7 @@ class Tracker:
         """
         frames = self.check_frames(frames, "frames")
         T, theta = self._check_pose(T_world_root, theta)
+        self._warm_up_mode()  # a misspelt setting is refused before the first frame, not in the middle of a run
         boxes = projected_boxes(self.mesh, self.cameras, T, theta, self.model)
         if not np.all(np.isfinite(boxes)):
             raise ValueError("the initial pose puts the object behind a camera (T_world_root)")
@@ -955,11 +961,20 @@ class Tracker:
         return (self.cameras, frames_j, self.prepared[i], state.modalities[i].histograms, params.lines, references,
                 tuple(lines.scales), tuple(lines.standard_deviations), lines.rounds, self.config.recovery)
 
+    def _warm_up_mode(self) -> str:
+        """`warm_up_recovery` as one of "doubt", "first frame", "off" (True / False: the latter two).
+
+        Raises:
+            ValueError: any other value (checked by `start`, before a frame is tracked)."""
+        value = self.warm_up_recovery
+        when = ("first frame" if value else "off") if isinstance(value, bool) else value
+        if when not in _WARMUP_MODES:
+            raise ValueError(f'Tracker.warm_up_recovery must be "doubt", "first frame" or "off" (or True / False), got {value!r}')
+        return when
+
     def _wants_recovery_warmup(self, result: FrameResult) -> bool:
         """Whether to start the search's background compile after this frame (`warm_up_recovery`)."""
-        when = {True: "first frame", False: "off"}.get(self.warm_up_recovery, self.warm_up_recovery)
-        if when not in ("doubt", "first frame", "off"):
-            raise ValueError(f'Tracker.warm_up_recovery must be "doubt", "first frame" or "off", got {self.warm_up_recovery!r}')
+        when = self._warm_up_mode()
         if (when == "off" or self._recovery_warmup is not None or self.recovery_modality() is None
                 or not self.config.recovery.hypotheses):
             return False
