@@ -17,8 +17,8 @@ crop size class and raster plan; with a modality that reads host inputs (SIFT) i
 (crops, render at χ_t, flow), is a program of its own, dispatched before the host detects and matches so
 that the device computes the flow meanwhile (`Tracker.overlap_host`). After a LOST frame (rigid object, line
 modality; on by default) the keyframes' PnP and the hypothesis search (`jaxtrack.track._recovery.recover_pose`,
-compiled in the background at the first frame reported UNCERTAIN or LOST; lost frames wait for that compile at most `RECOVERY_COMPILE_WAIT_S` in all, and
-one lost while it still compiles stays LOST) look for the pose, and the normal step is run again from what it found
+compiled in the background at the first frame reported UNCERTAIN or LOST; lost frames wait for that compile at
+most `RECOVERY_COMPILE_WAIT_S` in all, and one lost while it still compiles stays LOST) look for the pose, and the normal step is run again from what it found
 (status RECOVERED when that step is OK).
 """
 
