@@ -213,7 +213,8 @@ def track_sequence(
         reset_on_failure: the RBOT protocol (needs ground truth for every frame).
         recovery: search after a LOST frame (True: `TrackerConfig.recovery` = `RecoveryConfig()`) or not (False);
             None (the default): on, except with `reset_on_failure` (the oracle's resets are measured without the
-            tracker's own). With `config` given: its own `recovery`, left out with `reset_on_failure` unless True.
+            tracker's own). With `config` given: its own `recovery`, left out with False, and with `reset_on_failure`
+            unless True.
         max_frames: track only the first frames.
         progress: show a progress bar with the frame rate.
         on_frame: called with a `FrameRecord` after every frame (the first included), while tracking,
@@ -269,8 +270,8 @@ def track_sequence(
         raise ValueError(f"joint_limits: obj_id {obj_id} is rigid ({model_path.name}); limits come from a URDF")
     if config is None:
         config = _config_from(cues, region, working_shape, _recovers(recovery, reset_on_failure))
-    elif reset_on_failure and recovery is not True and config.recovery is not None:  # the oracle resets, not the search
-        config = dataclasses.replace(config, recovery=None)
+    elif config.recovery is not None and (recovery is False or (reset_on_failure and recovery is not True)):
+        config = dataclasses.replace(config, recovery=None)  # asked not to, or the oracle resets instead of the search
     limits = (articulated["lower"], articulated["upper"]) if joint_limits else None
     tracker = Tracker(mesh, rig, model=model, config=config, params=params, joint_limits=limits,
                       **({} if pose_prior is None else {"pose_prior": pose_prior}))

@@ -354,7 +354,7 @@ class Tracker:
             `jaxtrack.enable_compilation_cache`). The poses are the same either way.
         warm_up_recovery: when to compile the recovery search (`TrackerConfig.recovery`) in a background thread:
             "doubt" (the default) at the first frame reported UNCERTAIN or LOST, so that a run that never doubts pays
-            nothing; "first frame" (or True) after the first frame ($JAXTRACK_RECOVERY_WARMUP=1); "off" (or False;
+            no compile (the keyframes for the PnP are still taken: a SIFT pass at `start` and per new view); "first frame" (or True) after the first frame ($JAXTRACK_RECOVERY_WARMUP=1); "off" (or False;
             $JAXTRACK_RECOVERY_WARMUP=0) never: the first lost frame compiles it in the tracking thread.
         precompile_first_step: compile the first step's programs in a background thread from `start` on, beside the
             start's own (True; $JAXTRACK_PRECOMPILE=0 sets it False); only with the on-disk program cache (kept programs).
@@ -1037,7 +1037,7 @@ class Tracker:
 
     def _still_lost(self, lost_state: TrackerState, lost: FrameResult, info: dict) -> tuple:
         """(`lost_state`, `lost`, `info` with the windows at the lost pose): a frame that stays LOST after (or without)
-        a search goes on exactly as without recovery (its colour histograms and appearance model learnt from it as
+        a search goes on with the same state as without recovery (its colour histograms and appearance model learnt from it as
         from any frame: kept as they were instead, the noisy moving camera lost 20 → 4 % of its frames and the noise
         table failed up to 14 frames earlier, though the truck on the turntable held better, 5.39° → 3.48°;
         README, "Finding it again")."""
