@@ -233,6 +233,38 @@ def test_parameter_validation():
         make_texture_atlas(jt.render.box_mesh(), texel_mm=0.0)
 
 
+def test_an_elongated_face_gets_a_rectangular_grid_of_texels_about_texel_mm_on_a_side():
+    """A 400 x 20 mm sliver (a capsule's side) at 10 mm texels: R1 x R2 = 2 x 41 cells along its two edges from the
+    vertex at the short edge, instead of the square grid's R (R + 3) / 2 − 1 = 901; every texel's own centre finds
+    itself where it lies inside the triangle, random points on the face find a texel of the face within two cells (5 mm on average),
+    and the cells beyond the hypotenuse are not live (never read, never observed)."""
+    from jaxtrack.cues.occlusion._atlas import texel_index
+
+    v = np.array([[0.0, 0, 0], [20.0, 0, 0], [10.0, 400.0, 0], [0.0, 0, 50.0], [30.0, 0, 50.0], [15.0, 26.0, 50.0]])
+    mesh = jt.render.make_mesh(v, [[0, 1, 2], [3, 4, 5]])
+    atlas = make_texture_atlas(mesh, texel_mm=10.0)
+    rect, res = np.asarray(atlas.face_rect), np.asarray(atlas.face_res)
+    assert rect.tolist() == [True, False]  # the sliver; the equilateral face keeps the square grid
+    assert sorted(res[0].tolist()) == [2, 41] and res[1].tolist() == [4, 4]
+    assert atlas.num_texels == 82 + (4 * 7 // 2 - 1)
+    normal = np.asarray(atlas.texel_normal)
+    assert np.allclose(normal[:82], [0, 0, 1], atol=1e-6)  # the sliver's vertex order turned cyclically: same normal
+    faces = np.repeat([0, 1], [82, 13]).astype(np.int32)
+    own = np.asarray(texel_index(atlas, jnp.asarray(faces), atlas.texel_p_model))
+    M = np.asarray(atlas.face_map)[faces]
+    l = np.einsum("tij,tj->ti", M[..., :3], np.asarray(atlas.texel_p_model)) + M[..., 3]
+    live = np.asarray(atlas.texel_live)
+    inside = (l.sum(-1) < 1 - 1e-4) & live
+    assert np.array_equal(own[inside], np.arange(atlas.num_texels)[inside])
+    assert (~live[:82]).sum() > 0 and live[82:].all()
+    rng = np.random.default_rng(1)
+    points = np.einsum("nk,kd->nd", rng.dirichlet(np.ones(3), 3000), v[:3])
+    idx = np.asarray(texel_index(atlas, jnp.zeros(3000, jnp.int32), jnp.asarray(points, jnp.float32)))
+    assert np.all((idx >= 0) & (idx < 82)) and live[idx].all()
+    distance = np.linalg.norm(np.asarray(atlas.texel_p_model)[idx] - points, axis=-1)
+    assert np.all(distance <= 2.0 * 10.0) and distance.mean() < 5.0  # as the square grid: within two cells
+
+
 def test_the_atlas_keeps_only_cells_on_their_triangle_and_each_texel_centre_finds_itself():
     """Face f keeps the R_f (R_f + 3) / 2 − 1 cells (i, j) of its R_f × R_f grid with i + j ≤ R_f, row after row;
     `texel_index` of a texel's own centre gives that texel (centres of cells cut by the hypotenuse are clamped onto it
@@ -241,7 +273,8 @@ def test_the_atlas_keeps_only_cells_on_their_triangle_and_each_texel_centre_find
 
     mesh = jt.render.box_mesh()
     atlas = make_texture_atlas(mesh, texel_mm=3.0)
-    res = np.asarray(atlas.face_res)
+    assert not np.any(np.asarray(atlas.face_rect))  # a box's right triangles keep the square grid
+    res = np.asarray(atlas.face_res)[:, 0]
     assert res.max() >= 4  # cells beyond the triangle exist at this resolution
     assert atlas.num_texels == int(np.sum(res * (res + 3) // 2 - 1)) < int(np.sum(res**2))
     faces = np.repeat(np.arange(len(res)), res * (res + 3) // 2 - 1).astype(np.int32)
