@@ -234,15 +234,17 @@ def test_parameter_validation():
 
 
 def test_an_elongated_face_gets_a_rectangular_grid_of_texels_about_texel_mm_on_a_side():
-    """A 400 x 20 mm sliver (a capsule's side) at 10 mm texels: R1 x R2 = 2 x 41 cells along its two edges from the
-    vertex at the short edge, instead of the square grid's R (R + 3) / 2 − 1 = 901; every texel's own centre finds
-    itself where it lies inside the triangle, random points on the face find a texel of the face within two cells (5 mm on average),
-    and the cells beyond the hypotenuse are not live (never read, never observed)."""
+    """With `rectangular=True`, a 400 x 20 mm sliver (a capsule's side) at 10 mm texels: R1 x R2 = 2 x 41 cells along
+    its two edges from the vertex at the short edge, instead of the square grid's R (R + 3) / 2 − 1 = 901; every
+    texel's own centre finds itself where it lies inside the triangle, random points on the face find a texel of the
+    face within two cells (5 mm on average), and the cells beyond the hypotenuse are not live (never read, never
+    observed). Without it (the default) every face keeps the square grid."""
     from jaxtrack.cues.occlusion._atlas import texel_index
 
     v = np.array([[0.0, 0, 0], [20.0, 0, 0], [10.0, 400.0, 0], [0.0, 0, 50.0], [30.0, 0, 50.0], [15.0, 26.0, 50.0]])
     mesh = jt.render.make_mesh(v, [[0, 1, 2], [3, 4, 5]])
-    atlas = make_texture_atlas(mesh, texel_mm=10.0)
+    assert not np.any(np.asarray(make_texture_atlas(mesh, texel_mm=10.0).face_rect))  # opt-in
+    atlas = make_texture_atlas(mesh, texel_mm=10.0, rectangular=True)
     rect, res = np.asarray(atlas.face_rect), np.asarray(atlas.face_res)
     assert rect.tolist() == [True, False]  # the sliver; the equilateral face keeps the square grid
     assert sorted(res[0].tolist()) == [2, 41] and res[1].tolist() == [4, 4]
@@ -273,7 +275,8 @@ def test_the_atlas_keeps_only_cells_on_their_triangle_and_each_texel_centre_find
 
     mesh = jt.render.box_mesh()
     atlas = make_texture_atlas(mesh, texel_mm=3.0)
-    assert not np.any(np.asarray(atlas.face_rect))  # a box's right triangles keep the square grid
+    # a box's right triangles keep the square grid, rectangular or not
+    assert not np.any(np.asarray(make_texture_atlas(mesh, texel_mm=3.0, rectangular=True).face_rect))
     res = np.asarray(atlas.face_res)[:, 0]
     assert res.max() >= 4  # cells beyond the triangle exist at this resolution
     assert atlas.num_texels == int(np.sum(res * (res + 3) // 2 - 1)) < int(np.sum(res**2))

@@ -5,10 +5,12 @@ touch the triangle (i + j ≤ R_f), stored row after row: R_f (R_f + 3) / 2 − 
 cells beyond the triangle were stored too until 2026-11-27: 38 % of the mocap human's 266 000, read in every
 camera at every frame). R_f follows the face's longest edge and a texel size in mm, so big faces (the 12
 triangles of a box) and small ones (a teapot's 9438) both get texels of about one pixel. An elongated face
-(a capsule's slivers, 400 x 20 mm) would get texels 20 times finer across than along it: it carries a
-rectangular R1 × R2 grid along its two edges from one vertex instead (R = ⌈edge / texel⌉ each) where that
-stores at most half the cells (since 2026-11-28; the mocap human's atlas in the tracker: 170 384 → 55 344
-texels). The atlas is built once on the host; inside jit it is a constant pytree of arrays.
+(a capsule's slivers, 400 x 20 mm) gets texels 20 times finer across than along it. With `rectangular=True`
+(opt-in since 2026-11-28) such a face carries a rectangular R1 × R2 grid along its two edges from one vertex
+instead (R = ⌈edge / texel⌉ each) where that stores at most half the cells: the mocap human's atlas in the
+tracker 170 384 → 55 344 texels, but the occluded and noisy sequences tracked worse with the coarser texels
+(README, "Texels along elongated faces"). The atlas is built once on the host; inside jit it is a constant
+pytree of arrays.
 """
 
 from __future__ import annotations
@@ -56,7 +58,8 @@ def _face_resolutions(edge_max, texel_mm, max_res):
     return np.clip(np.ceil(edge_max / texel_mm), 1, max_res).astype(np.int64)
 
 
-def make_texture_atlas(mesh: Mesh, texel_mm: float = 1.0, max_texels: int = 400_000, max_res: int = 512) -> TextureAtlas:
+def make_texture_atlas(mesh: Mesh, texel_mm: float = 1.0, max_texels: int = 400_000, max_res: int = 512,
+                       rectangular: bool = False) -> TextureAtlas:
     """Build the atlas of `mesh` (host side).
 
     Args:
@@ -67,6 +70,8 @@ def make_texture_atlas(mesh: Mesh, texel_mm: float = 1.0, max_texels: int = 400_
             so the atlas, which stores fewer cells per face, holds fewer texels (the resolutions as before the
             compact layouts).
         max_res: largest R_f (and R1, R2 of a rectangular grid).
+        rectangular: elongated faces get rectangular grids (see the module docstring); False: every face the square
+            grid (the default: measured to track the occluded and noisy sequences better, README).
 
     Raises:
         ValueError: for a non-positive `texel_mm` or `max_texels` smaller than the face count.
@@ -88,7 +93,7 @@ def make_texture_atlas(mesh: Mesh, texel_mm: float = 1.0, max_texels: int = 400_
     # the square grid's cells: its texels are about texel_mm along both edges instead of texel_mm / aspect across.
     rect_res, rotation = _rectangular_resolutions(v, f, texel_mm, max_res)
     square_cells = res * (res + 3) // 2 - 1
-    rect = 2 * rect_res[:, 0] * rect_res[:, 1] <= square_cells
+    rect = (2 * rect_res[:, 0] * rect_res[:, 1] <= square_cells) & bool(rectangular)
     k = np.where(rect, rotation, 0)
     rows = np.arange(len(f))
     a, b, c = v[f[rows, k]], v[f[rows, (k + 1) % 3]], v[f[rows, (k + 2) % 3]]
