@@ -265,6 +265,19 @@ def test_an_elongated_face_gets_a_rectangular_grid_of_texels_about_texel_mm_on_a
     assert np.all((idx >= 0) & (idx < 82)) and live[idx].all()
     distance = np.linalg.norm(np.asarray(atlas.texel_p_model)[idx] - points, axis=-1)
     assert np.all(distance <= 2.0 * 10.0) and distance.mean() < 5.0  # as the square grid: within two cells
+    # The same sliver with its vertices listed from another one: the grid starts at a turned vertex, same normal.
+    turned = make_texture_atlas(jt.render.make_mesh(v[:3], [[1, 2, 0]]), texel_mm=10.0, rectangular=True)
+    assert np.asarray(turned.face_rect).tolist() == [True] and sorted(np.asarray(turned.face_res)[0].tolist()) == [2, 41]
+    assert np.allclose(np.asarray(turned.texel_normal), [0, 0, 1], atol=1e-6)
+    live_t = np.asarray(turned.texel_live)
+    own_t = np.asarray(texel_index(turned, jnp.zeros(turned.num_texels, jnp.int32), turned.texel_p_model))
+    M_t = np.asarray(turned.face_map)[0]
+    l_t = np.asarray(turned.texel_p_model) @ M_t[:, :3].T + M_t[:, 3]
+    inside_t = (l_t.sum(-1) < 1 - 1e-4) & live_t
+    assert inside_t.sum() > 40 and np.array_equal(own_t[inside_t], np.arange(turned.num_texels)[inside_t])
+    idx_t = np.asarray(texel_index(turned, jnp.zeros(3000, jnp.int32), jnp.asarray(points, jnp.float32)))
+    assert live_t[idx_t].all()
+    assert np.linalg.norm(np.asarray(turned.texel_p_model)[idx_t] - points, axis=-1).max() <= 2.0 * 10.0
 
 
 def test_the_atlas_keeps_only_cells_on_their_triangle_and_each_texel_centre_finds_itself():

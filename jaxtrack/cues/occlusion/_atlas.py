@@ -6,8 +6,9 @@ cells beyond the triangle were stored too until 2026-11-27: 38 % of the mocap hu
 camera at every frame). R_f follows the face's longest edge and a texel size in mm, so big faces (the 12
 triangles of a box) and small ones (a teapot's 9438) both get texels of about one pixel. An elongated face
 (a capsule's slivers, 400 x 20 mm) gets texels 20 times finer across than along it. With `rectangular=True`
-(opt-in since 2026-11-28) such a face carries a rectangular R1 × R2 grid along its two edges from one vertex
-instead (R = ⌈edge / texel⌉ each) where that stores at most half the cells: the mocap human's atlas in the
+(opt-in since 2026-11-28) a face carries a rectangular R1 × R2 grid along its two edges from one vertex
+instead (R = ⌈edge / texel⌉ each) wherever that stores at most half the cells (mostly elongated faces; at a
+few cells a face also rounds into it; its texels stay at most texel_mm a side): the mocap human's atlas in the
 tracker 170 384 → 55 344 texels, but the occluded and noisy sequences tracked worse with the coarser texels
 (README, "Texels along elongated faces"). The atlas is built once on the host; inside jit it is a constant
 pytree of arrays.
@@ -31,12 +32,13 @@ class TextureAtlas(eqx.Module):
         face_offset: (F,) int32 index of face f's first texel.
         face_res: (F, 2) int32 cells along the two barycentric axes: (R_f, R_f) of a square grid (row i holds the
             cells j ≤ min(R_f − 1, R_f − i), see `_row_start`) or (R1, R2) of a rectangular one (R2 cells a row).
-        face_rect: (F,) bool the face has a rectangular grid (an elongated face).
+        face_rect: (F,) bool the face has a rectangular grid (`rectangular=True` and it stores at most half the cells).
         face_map: (F, 2, 4) affine map from a model-frame point on face f to its (l1, l2).
         texel_p_model: (T, 3) texel centre, model frame at the zero configuration (mm), clamped
-            into its triangle.
+            into its triangle (a rectangular grid's cells beyond the hypotenuse, not live: their lower corner).
         texel_part: (T,) int32 part of the texel's face.
-        texel_live: (T,) bool texel of a non-degenerate face (every stored cell touches its triangle).
+        texel_live: (T,) bool texel of a non-degenerate face whose cell touches the triangle (every cell of a square
+            grid; a rectangular grid's cell with its lower corner on the triangle).
         texel_normal: (T, 3) unit normal of the texel's face (model frame).
     """
 
@@ -70,7 +72,7 @@ def make_texture_atlas(mesh: Mesh, texel_mm: float = 1.0, max_texels: int = 400_
             so the atlas, which stores fewer cells per face, holds fewer texels (the resolutions as before the
             compact layouts).
         max_res: largest R_f (and R1, R2 of a rectangular grid).
-        rectangular: elongated faces get rectangular grids (see the module docstring); False: every face the square
+        rectangular: rectangular grids where they store at most half the cells (elongated faces; module docstring); False: every face the square
             grid (the default: measured to track the occluded and noisy sequences better, README).
 
     Raises:
@@ -88,9 +90,10 @@ def make_texture_atlas(mesh: Mesh, texel_mm: float = 1.0, max_texels: int = 400_
     while np.sum(res**2) > max_texels:
         texel_mm *= 1.1 * np.sqrt(np.sum(res**2) / max_texels)
         res = _face_resolutions(edge_max, texel_mm, max_res)
-    # Elongated faces (a capsule's long slivers) get a rectangular grid R1 × R2 along the two edges from the vertex
-    # (of the three cyclic orders, which keep the normal) that stores the fewest cells, where that is at most half
-    # the square grid's cells: its texels are about texel_mm along both edges instead of texel_mm / aspect across.
+    # With `rectangular`, a face gets a rectangular grid R1 × R2 along the two edges from the vertex (of the three
+    # cyclic orders, which keep the normal) that stores the fewest cells, where that is at most half the square grid's
+    # cells (slivers: texels about texel_mm along both edges instead of texel_mm / aspect across; a few faces of a
+    # few cells round into it too).
     rect_res, rotation = _rectangular_resolutions(v, f, texel_mm, max_res)
     square_cells = res * (res + 3) // 2 - 1
     rect = (2 * rect_res[:, 0] * rect_res[:, 1] <= square_cells) & bool(rectangular)
