@@ -33,6 +33,8 @@ class TextureAtlas(eqx.Module):
         face_res: (F, 2) int32 cells along the two barycentric axes: (R_f, R_f) of a square grid (row i holds the
             cells j ≤ min(R_f − 1, R_f − i), see `_row_start`) or (R1, R2) of a rectangular one (R2 cells a row).
         face_rect: (F,) bool the face has a rectangular grid (`rectangular=True` and it stores at most half the cells).
+        any_rect: static: some face has one (without, `texel_index` reads the square layout alone: the default's
+            per-pixel lookup and program as before the rectangular grids).
         face_map: (F, 2, 4) affine map from a model-frame point on face f to its (l1, l2).
         texel_p_model: (T, 3) texel centre, model frame at the zero configuration (mm), clamped
             into its triangle (a rectangular grid's cells beyond the hypotenuse, not live: their lower corner).
@@ -50,6 +52,7 @@ class TextureAtlas(eqx.Module):
     texel_part: jax.Array
     texel_live: jax.Array
     texel_normal: jax.Array
+    any_rect: bool = eqx.field(static=True, default=False)
 
     @property
     def num_texels(self) -> int:
@@ -72,8 +75,9 @@ def make_texture_atlas(mesh: Mesh, texel_mm: float = 1.0, max_texels: int = 400_
             so the atlas, which stores fewer cells per face, holds fewer texels (the resolutions as before the
             compact layouts).
         max_res: largest R_f (and R1, R2 of a rectangular grid).
-        rectangular: rectangular grids where they store at most half the cells (elongated faces; module docstring); False: every face the square
-            grid (the default: measured to track the occluded and noisy sequences better, README).
+        rectangular: rectangular grids where they store at most half the cells (elongated faces; module
+            docstring); False: every face the square grid (the default: measured to track the occluded and noisy
+            sequences better, README).
 
     Raises:
         ValueError: for a non-positive `texel_mm` or `max_texels` smaller than the face count.
@@ -94,9 +98,12 @@ def make_texture_atlas(mesh: Mesh, texel_mm: float = 1.0, max_texels: int = 400_
     # cyclic orders, which keep the normal) that stores the fewest cells, where that is at most half the square grid's
     # cells (slivers: texels about texel_mm along both edges instead of texel_mm / aspect across; a few faces of a
     # few cells round into it too).
-    rect_res, rotation = _rectangular_resolutions(v, f, texel_mm, max_res)
     square_cells = res * (res + 3) // 2 - 1
-    rect = (2 * rect_res[:, 0] * rect_res[:, 1] <= square_cells) & bool(rectangular)
+    if rectangular:
+        rect_res, rotation = _rectangular_resolutions(v, f, texel_mm, max_res)
+        rect = 2 * rect_res[:, 0] * rect_res[:, 1] <= square_cells
+    else:
+        rect_res, rotation, rect = np.ones((len(f), 2), np.int64), np.zeros(len(f), np.int64), np.zeros(len(f), bool)
     k = np.where(rect, rotation, 0)
     rows = np.arange(len(f))
     a, b, c = v[f[rows, k]], v[f[rows, (k + 1) % 3]], v[f[rows, (k + 2) % 3]]
@@ -147,6 +154,7 @@ def make_texture_atlas(mesh: Mesh, texel_mm: float = 1.0, max_texels: int = 400_
         texel_part=to_device(np.asarray(mesh.face_part)[face_of], np.int32),
         texel_live=to_device(ok[face_of] & touches),
         texel_normal=to_device(normal[face_of], dtype),
+        any_rect=bool(np.any(rect)),
     )
 
 
@@ -180,9 +188,10 @@ def texel_index(atlas: TextureAtlas, face_id, p_model):
     ij = jnp.clip(jnp.floor(l * res.astype(l.dtype)).astype(jnp.int32), 0, res - 1)
     i, j = ij[..., 0], ij[..., 1]
     r1, r2 = res[..., 0], res[..., 1]
-    square = _row_start(i, r1) + jnp.minimum(j, r1 - i)  # a point on the triangle has i + j ≤ R
-    rect = i * r2 + jnp.minimum(j, (r2 * (r1 - i)) // r1)  # ... and j ≤ R2 (R1 − i) / R1
-    return jnp.where(covered, atlas.face_offset[face] + jnp.where(atlas.face_rect[face], rect, square), 0)
+    local = _row_start(i, r1) + jnp.minimum(j, r1 - i)  # a point on the triangle has i + j ≤ R
+    if atlas.any_rect:  # ... on a rectangular grid j ≤ R2 (R1 − i) / R1
+        local = jnp.where(atlas.face_rect[face], i * r2 + jnp.minimum(j, (r2 * (r1 - i)) // r1), local)
+    return jnp.where(covered, atlas.face_offset[face] + local, 0)
 
 
 def _row_start(i, r):
