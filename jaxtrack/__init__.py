@@ -20,6 +20,7 @@ from ._status import StatusError as StatusError
 from ._status import check_status as check_status
 from ._status import first_failure as first_failure
 from ._status import is_usable as is_usable
+from ._tiered import wait_for_optimised_programs as wait_for_optimised_programs
 from .geometry import Camera as Camera
 from .geometry import KinematicModel as KinematicModel
 from .geometry import chain_model as chain_model

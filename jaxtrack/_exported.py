@@ -21,7 +21,8 @@ entry whose program fails to run (then for good, in this process). A pickle that
 misses: the program is exported again under another name.
 
 Every program here, kept or plain, compiles with `compiler_options()` (XLA's defaults; $JAXTRACK_FUSION_EMITTERS=0
-trades run time for a shorter compile, below).
+trades run time for a shorter compile, below), except a `tiered` kept program (the tracker's step): with an empty cache
+it compiles quickly first and a background process makes its optimised build (`jaxtrack._tiered`).
 
 Off unless a folder is set: `enable_compilation_cache` sets it (`jaxtrack track`, `bench`, the experiments);
 `JAXTRACK_EXPORT_CACHE=0` turns it off. Serialisation needs the `flatbuffers` package (a dependency).
@@ -47,26 +48,35 @@ import numpy as np
 
 _FOLDER: list[pathlib.Path | None] = [None]
 
-# XLA:CPU's older elemental emitters instead of its MLIR fusion emitters, when $JAXTRACK_FUSION_EMITTERS=0: XLA compiles
-# the tracker's two large programs in about two thirds of the time (26.9 → 17.3 s, probe), the first frame with an
-# empty cache is shorter (640x480, all cues: 1 camera 20.6-21.2 → 15.3-16.0 s, 4 cameras 24.9-25.1 → 20.6-22.8 s), but
-# the programs run slower (ms per frame 28-29 → 33-34 on 1 camera, 114-118 → 148-150 on 4): a one-time saving against
-# a lasting cost, so XLA's default stays the default. The test suite, whose trackers run a few frames each, opts in
-# (tests/conftest.py). README "Fast compile, slower frames". Should XLA drop the option, every compile under =0 fails
-# with "No such compile option" (the suite would say so first).
+# XLA:CPU's older elemental emitters instead of its MLIR fusion emitters: XLA compiles the tracker's two large programs in
+# about two thirds of the time (26.9 → 17.3 s, probe), but the programs run slower (ms per frame 28-29 → 33-34 on 1 camera,
+# 114-118 → 148-150 on 4). $JAXTRACK_FUSION_EMITTERS: "0", every program with these options (the test suite, whose
+# trackers run a few frames each: tests/conftest.py); "1", XLA's defaults everywhere (one compile, the faster programs);
+# "auto" (the default), XLA's defaults except for the tiered programs (`persistent_jit(..., tiered=True)`: the tracker's
+# step), which compile with these options first and are replaced by XLA's default build from a background process
+# (`jaxtrack._tiered`). README "Fast compile, slower frames". Should XLA drop the option, every compile with it fails with
+# "No such compile option" (the suite would say so first).
 CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+FUSION_EMITTERS_VALUES = ("0", "1", "auto")
+
+
+def compile_mode(platform: str | None = None) -> str:
+    """How `persistent_jit` compiles on `platform` (default: jax's default backend), from $JAXTRACK_FUSION_EMITTERS:
+    "quick" (`CPU_COMPILER_OPTIONS` everywhere), "default" (XLA's defaults everywhere; any backend but the CPU), or
+    "tiered" (XLA's defaults, tiered programs in two tiers)."""
+    value = os.environ.get("JAXTRACK_FUSION_EMITTERS", "auto")
+    if value not in FUSION_EMITTERS_VALUES:
+        raise ValueError(f"$JAXTRACK_FUSION_EMITTERS must be 0, 1 or auto, got {value!r}")
+    if (platform or jax.default_backend()) != "cpu":
+        return "default"
+    return {"0": "quick", "1": "default", "auto": "tiered"}[value]
 
 
 def compiler_options(platform: str | None = None) -> dict | None:
     """XLA compile options of the programs `persistent_jit` makes on `platform` (default: jax's default backend):
-    none (XLA's defaults) unless $JAXTRACK_FUSION_EMITTERS=0, then `CPU_COMPILER_OPTIONS` on the CPU (the faster compile,
-    the slower program); none on other backends."""
-    value = os.environ.get("JAXTRACK_FUSION_EMITTERS", "1")
-    if value not in ("0", "1"):
-        raise ValueError(f"$JAXTRACK_FUSION_EMITTERS must be 0 or 1, got {value!r}")
-    if value == "1" or (platform or jax.default_backend()) != "cpu":
-        return None
-    return dict(CPU_COMPILER_OPTIONS)
+    `CPU_COMPILER_OPTIONS` in the "quick" `compile_mode` (the faster compile, the slower program), else none (XLA's
+    defaults; a tiered program's first tier is chosen in `persistent_jit`)."""
+    return dict(CPU_COMPILER_OPTIONS) if compile_mode(platform) == "quick" else None
 
 
 def _options_key(options: dict | None) -> tuple:
@@ -216,6 +226,7 @@ def _remove_stale(written: pathlib.Path) -> None:
             other_name, other_tag, _ = path.name.rsplit("-", 2)
             if other_name == name and other_tag != tag and time.time() - path.stat().st_mtime > STALE_AFTER_S:
                 path.unlink()
+                path.with_name(path.name + ".optimised").unlink(missing_ok=True)  # its `jaxtrack._tiered` mark
         except (OSError, ValueError):  # removed by another process meanwhile, or a name of another form
             continue
     for path in written.parent.glob(".*.jaxexport.*"):  # temporary files of writers that died
@@ -256,6 +267,7 @@ class _Entry:
         self.call = jax.jit(exported.call, in_shardings=placement, out_shardings=placement, **_jit_options(options))
         self.out_treedef, self.out_is_dynamic, self.out_static = out_treedef, out_is_dynamic, out_static
         self.compiled = False
+        self.optimise = None  # a first tier's `jaxtrack._tiered.Request`, until its first call
 
     def compile(self, dynamic) -> None:
         """XLA's compile of the program for these arguments (or its load from the on-disk cache), without running it;
@@ -281,12 +293,17 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
 
     Args:
         fn: a function of pytrees; arrays are traced, every other leaf is static (as `eqx.filter_jit`).
+        tiered: in the "tiered" `compile_mode`, with the on-disk caches on, a kept program compiles quickly first
+            (`CPU_COMPILER_OPTIONS`) and its build with XLA's defaults replaces it once a background process has made
+            it (`jaxtrack._tiered`); a process that finds that build marked done loads it at once.
+        quick: in the "tiered" `compile_mode`, the quick build only (`CPU_COMPILER_OPTIONS`): for a program that runs
+            once per start, whose compile the first frame waits for and whose run time does not matter.
 
     Attributes:
         loaded: signatures this process found on disk; exported: signatures it traced and wrote.
     """
 
-    def __init__(self, fn):
+    def __init__(self, fn, tiered: bool = False, quick: bool = False):
         functools.update_wrapper(self, fn)  # first: it copies fn.__dict__ onto this object
         self.fn = fn
         self.name = getattr(fn, "__name__", "fn").strip("_") or "fn"
@@ -296,6 +313,8 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
         self.loaded = 0
         self.exported = 0
         self._lock = threading.Lock()
+        self.tiered, self.quick = tiered, quick
+        self._tiers: dict = {}  # (signature key without options) -> (program path, optimised in use)
 
     def plain(self, *args, **kwargs):
         """`eqx.filter_jit(fn)(*args, **kwargs)`, compiled with `compiler_options()` of jax's default backend (read at
@@ -334,7 +353,12 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
         device = _call_device(dynamic)
         options = compiler_options(device.platform)  # read at each call, as the plain path does: part of the key
         try:
-            key = (treedef, is_dynamic, static, avals, _settings(), device, _options_key(options))
+            base = (treedef, is_dynamic, static, avals, _settings(), device)
+            tiered_mode = (self.tiered or self.quick) and compile_mode(device.platform) == "tiered"
+            tier = self._tier(folder, base) if tiered_mode and self.tiered else None
+            if (tier is not None and not tier[1]) or (tiered_mode and self.quick):
+                options = dict(CPU_COMPILER_OPTIONS)  # the first tier, or a program that runs once per start
+            key = (*base, _options_key(options))
             entry = self.memory.get(key)
         except TypeError:  # an unhashable static leaf: eqx.filter_jit says what it needs
             return _PLAIN, None, None
@@ -343,7 +367,38 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
                 entry = self.memory.get(key)
                 if entry is None:
                     entry = self.memory[key] = self._entry(folder, treedef, is_dynamic, static, avals, device, options)
+                    # (A program not written to disk, the source changed since the import, keeps its quick build.)
+                    if tier is not None and not tier[1] and entry is not _PLAIN and tier[0].exists():
+                        entry.optimise = self._optimise_request(base, tier[0], entry, device)
         return entry, dynamic, key
+
+    def _tier(self, folder: pathlib.Path, base: tuple):
+        """(program path, whether its optimised build is in use) of a signature in the tiered mode, or None where it
+        compiles once with XLA's defaults (no compile cache for a child to fill, no signature kept on disk)."""
+        tier = self._tiers.get(base)
+        if tier is None:
+            from . import _tiered
+
+            treedef, is_dynamic, static, avals = base[:4]
+            signature = self._signature(treedef, is_dynamic, static, avals) if _tiered.available() else None
+            path = None if signature is None else self._path(folder, signature)
+            tier = self._tiers[base] = False if path is None else (path, _tiered.is_marked(path))
+        return tier or None
+
+    def _optimise_request(self, base: tuple, path: pathlib.Path, quick: _Entry, device):
+        """The `jaxtrack._tiered.Request` that replaces the first tier's `quick` entry by XLA's default build."""
+        from . import _tiered
+
+        def make_entry():
+            return _Entry(quick.exported, quick.out_treedef, quick.out_is_dynamic, quick.out_static, device, None)
+
+        def swap(entry):
+            with self._lock:
+                self.memory[(*base, _options_key(None))] = entry
+                self._tiers[base] = (path, True)
+
+        structs = tuple(jax.ShapeDtypeStruct(shape, dtype) for shape, dtype in base[3])
+        return _tiered.Request(program=path, avals=base[3], make_entry=make_entry, swap=swap, structs=structs)
 
     def __call__(self, *args, **kwargs):
         entry, dynamic, key = self._resolve(args, kwargs)
@@ -352,6 +407,11 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
         return self._run(entry, dynamic, key, args, kwargs)
 
     def _run(self, entry, dynamic, key, args, kwargs):
+        if entry.optimise is not None:  # a first tier's first call: its optimised build starts in the background
+            from . import _tiered
+
+            request, entry.optimise = entry.optimise, None
+            _tiered.request(request)
         try:
             return entry(dynamic)
         except Exception as error:  # noqa: BLE001  (e.g. a program of another platform: the plain path, for good)
@@ -427,12 +487,15 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
         signature = self._signature(treedef, is_dynamic, static, avals)
         if signature is None:
             return _PLAIN
-        path = folder / f"{self.name}-{_environment_tag()}-{hashlib.sha256(signature).hexdigest()[:40]}.jaxexport"
+        path = self._path(folder, signature)
         entry = self._load(path, signature, device, options)
         if entry is not None:
             self.loaded += 1
             return entry
         return self._export(path, signature, treedef, is_dynamic, static, avals, device, options)
+
+    def _path(self, folder: pathlib.Path, signature: bytes) -> pathlib.Path:
+        return folder / f"{self.name}-{_environment_tag()}-{hashlib.sha256(signature).hexdigest()[:40]}.jaxexport"
 
     @staticmethod
     def _load(path: pathlib.Path, signature: bytes, device, options=None) -> _Entry | None:

@@ -29,7 +29,8 @@ os.environ.setdefault("JAXTRACK_RECOVERY_WARMUP", "0")
 os.environ.setdefault("JAXTRACK_EXPORT_CACHE", "0")
 # The tracker's programs with XLA:CPU's older emitters ($JAXTRACK_FUSION_EMITTERS=0, `jaxtrack._exported`): XLA compiles
 # them in about two thirds of the time and they run 15-30 % slower, and the suite's trackers run a few frames each. The
-# product keeps XLA's default (tests/test_exported.py checks the split step's equality with it).
+# product compiles its step in two tiers, this build first and XLA's default from a background process (`jaxtrack._tiered`;
+# tests/test_exported.py checks the split step's equality with the default and the tiers in a subprocess).
 os.environ.setdefault("JAXTRACK_FUSION_EMITTERS", "0")
 # The suite checks the tracker's defaults: the opt-in motion rounds of an experiment's shell are not inherited.
 os.environ.pop("JAXTRACK_MOTION_ROUNDS", None)

@@ -500,3 +500,71 @@ def test_a_call_inside_a_callers_jit_with_concrete_arguments_runs_in_the_callers
         if kept:
             assert all(entry is not _exported._PLAIN for entry in f.memory.values()) and len(f.memory) == 1
         assert float(f(m, 2 * x)[1]) == pytest.approx(float(eqx.filter_jit(model)(m, 2 * x)[1]))
+
+
+TIERED_SCRIPT = r"""
+import json, os, pathlib, sys
+import jax, jax.numpy as jnp, numpy as np
+import jax.monitoring
+from jaxtrack import enable_compilation_cache
+from jaxtrack import _tiered
+from jaxtrack._exported import persistent_jit
+from jaxtrack.geometry import se3_exp
+
+events = []
+jax.monitoring.register_event_listener(lambda name, **kw: events.append(name.rsplit("/", 1)[-1]) if "compilation_cache" in name else None)
+enable_compilation_cache(sys.argv[1])
+xi = jnp.array([0.1, -0.2, 0.3, 10.0, 20.0, 30.0], jnp.float32)
+out = {}
+f = persistent_jit(se3_exp, tiered=True)
+first = f(xi)
+out["first_options"] = [dict(k[-1]) for k in f.memory]
+out["requested"] = _tiered.optimise_counts()[0]
+n = len(events)
+out["waited"] = _tiered.wait_for_optimised_programs(timeout=120)
+out["wait_events"] = events[n:]
+out["failures"] = _tiered.optimise_failures()
+out["swapped"] = _tiered.optimise_counts()[1]
+second = f(xi)
+out["options_after"] = sorted(json.dumps(dict(k[-1])) for k in f.memory)
+out["max_diff"] = float(np.max(np.abs(np.asarray(first) - np.asarray(second))))
+out["marks"] = sorted(p.name.split(".", 1)[1] for p in pathlib.Path(sys.argv[1], "exported").iterdir())
+fresh = persistent_jit(se3_exp, tiered=True)  # a later process: nothing in memory, the mark on disk
+fresh(xi)
+out["fresh_options"] = [dict(k[-1]) for k in fresh.memory]
+out["requested_after_fresh"] = _tiered.optimise_counts()[0]
+print("RESULT " + json.dumps(out))
+"""
+
+
+def test_a_tiered_program_runs_its_quick_build_first_then_the_optimised_one_a_child_process_compiled(tmp_path):
+    """`persistent_jit(..., tiered=True)` in the default mode ($JAXTRACK_FUSION_EMITTERS unset) with an empty cache: the
+    first call compiles with the quick options; a child process compiles XLA's default build into the compile cache and
+    marks it; this process loads it (a hit in the compile cache, not a compile) and runs it from then on (the same
+    values); a later wrapper (a new process) that finds the mark runs the optimised build at once and asks for nothing."""
+    env = {k: v for k, v in os.environ.items() if k not in ("JAXTRACK_FUSION_EMITTERS", "JAXTRACK_EXPORT_CACHE")}
+    proc = subprocess.run([sys.executable, "-c", TIERED_SCRIPT, str(tmp_path / "cache")], capture_output=True, text=True,
+                          env=env, timeout=300, check=False)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    out = __import__("json").loads(next(line for line in proc.stdout.splitlines() if line.startswith("RESULT "))[7:])
+    quick = dict(_exported.CPU_COMPILER_OPTIONS)
+    assert out["first_options"] == [quick] and out["requested"] == 1
+    assert out["waited"] and out["failures"] == [] and out["swapped"] == 1
+    assert "cache_hits" in out["wait_events"] and "cache_misses" not in out["wait_events"], out["wait_events"]
+    assert out["options_after"] == sorted(['{}', __import__("json").dumps(quick)])
+    assert out["max_diff"] < 1e-4
+    assert out["marks"] == ["jaxexport", "jaxexport.optimised"]
+    assert out["fresh_options"] == [{}] and out["requested_after_fresh"] == 1
+
+
+def test_the_fusion_emitters_setting_names_its_modes(monkeypatch):
+    """$JAXTRACK_FUSION_EMITTERS: unset or auto → tiered on the CPU, 0 → quick, 1 → XLA's defaults; any backend but the
+    CPU compiles once with XLA's defaults; another value names the variable."""
+    monkeypatch.delenv("JAXTRACK_FUSION_EMITTERS", raising=False)
+    assert _exported.compile_mode("cpu") == "tiered" and _exported.compile_mode("gpu") == "default"
+    for value, mode in (("auto", "tiered"), ("0", "quick"), ("1", "default")):
+        monkeypatch.setenv("JAXTRACK_FUSION_EMITTERS", value)
+        assert _exported.compile_mode("cpu") == mode
+    monkeypatch.setenv("JAXTRACK_FUSION_EMITTERS", "tiered")
+    with pytest.raises(ValueError, match="JAXTRACK_FUSION_EMITTERS must be 0, 1 or auto"):
+        _exported.compile_mode("cpu")

@@ -72,13 +72,17 @@ class ExperimentClock:
         return budget_min is not None and self.elapsed_s() > 60 * budget_min
 
 
-def start_experiment(*, cache: bool | str | os.PathLike = True) -> ExperimentClock:
+def start_experiment(*, cache: bool | str | os.PathLike = True, compile_tiers: bool = False) -> ExperimentClock:
     """Set up this process for a benchmark run and start its clock.
 
     OpenCV runs on one thread (its idle workers compete with XLA on a 2-core machine). With `cache` (a full run, not
     a --quick smoke run) JAX keeps compiled programs in the on-disk compilation cache
     (`jaxtrack.enable_compilation_cache`, as `jaxtrack track` does), so a rerun, or the next script, loads them
     instead of compiling again: True, its default folder; a path, that folder; False (or ""), no cache.
+    `compile_tiers` False (the accuracy experiments): unless $JAXTRACK_FUSION_EMITTERS is set, it is set to 1 here (this
+    process and its children): the tracker's step in one build, XLA's optimised one, so that no pose depends on when a
+    background compile finished (`jaxtrack._tiered`; the quick build of an empty cache rounds otherwise); True (the
+    speed benchmarks): the product's default, two tiers.
 
     Returns:
         The `ExperimentClock` started now, with the load average now.
@@ -86,6 +90,8 @@ def start_experiment(*, cache: bool | str | os.PathLike = True) -> ExperimentClo
     import cv2
 
     cv2.setNumThreads(1)
+    if not compile_tiers:
+        os.environ.setdefault("JAXTRACK_FUSION_EMITTERS", "1")
     if cache:
         from .._cache import enable_compilation_cache
 

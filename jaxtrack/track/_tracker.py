@@ -74,8 +74,10 @@ from ._step import (
     track_step,
 )
 
-_track_step_jit = persistent_jit(track_step)
-_start_frame_jit = persistent_jit(start_frame)
+# The step's two programs compile in two tiers by default (`jaxtrack._tiered`): quickly for the first frame, then XLA's
+# optimised build from a background process.
+_track_step_jit = persistent_jit(track_step, tiered=True)
+_start_frame_jit = persistent_jit(start_frame, tiered=True)
 _recover_pose_jit = persistent_jit(recover_pose)
 
 # The trackers' background compiles still running. A process that exits while XLA compiles in a daemon thread aborts
@@ -192,7 +194,6 @@ def _compile_step_programs(start_args: tuple, early_like, make_host) -> tuple:
     return host, compiled and start_frame_compiled[0]
 
 
-@persistent_jit
 def _initial_modality_states(setup: TrackerSetup, frames, offsets, T, theta, params: TrackerParams, crop_shape,
                              scales=None, occluder_depth=None):
     """Every configured modality's state at the first frame (known pose), one compiled program
@@ -207,7 +208,6 @@ def _initial_modality_states(setup: TrackerSetup, frames, offsets, T, theta, par
         for i, m in enumerate(setup.config.modalities()))
 
 
-@persistent_jit
 def _initial_appearance_jit(setup: TrackerSetup, frames, T, theta, params: OcclusionParams, offsets=None, crop_shape=None,
                             scales=None):
     """Silhouettes (C, H, W) and the appearance model seen at the known first pose, one compiled program
@@ -232,6 +232,11 @@ def _initial_appearance_jit(setup: TrackerSetup, frames, T, theta, params: Occlu
         shape = crop_ren.depth.shape
     appearance = update_appearance(init_appearance(setup.atlas, T.dtype), obs, jnp.zeros(shape, bool), params)
     return ren.face_id >= 0, appearance
+
+
+# Both run once per `start`: the quick build (`persistent_jit(quick=True)`; the first frame waits for their compile).
+_initial_modality_states = persistent_jit(_initial_modality_states, quick=True)
+_initial_appearance_jit = persistent_jit(_initial_appearance_jit, quick=True)
 
 
 # Region settings for kinematic chains (measured on the mocap humans, experiments/human_table2.py; one refinement
