@@ -92,7 +92,7 @@ def main(argv=None):
     if bad or args.repeats < 1:
         raise SystemExit(f"first_frame_compile: --configs from {', '.join(CONFIGS)} (got {bad}); --repeats ≥ 1")
     command = command_line(__file__, argv)
-    clock = start_experiment(cache=False)
+    clock = start_experiment(cache=False, compile_tiers=True)
     runs = {c: [] for c in names}
     with tempfile.TemporaryDirectory(prefix="first_frame_") as tmp:
         cfg = tp.preset_config("occluded-box", 0.5, 3)

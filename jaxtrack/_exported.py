@@ -476,6 +476,18 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
             return None
         return signature
 
+    def is_kept(self, *args, **kwargs) -> bool:
+        """Whether these arguments' program is on disk (exported by this or an earlier process), without loading it;
+        False where the call would run `eqx.filter_jit` (no folder, tracers, weak types, a signature not kept)."""
+        folder = _FOLDER[0]
+        if folder is None:
+            return False
+        treedef, is_dynamic, dynamic, static, avals = _split(args, kwargs)
+        if any(isinstance(x, jax.core.Tracer) or getattr(x, "weak_type", False) for x in dynamic):
+            return False
+        signature = self._signature(treedef, is_dynamic, static, avals)
+        return signature is not None and self._path(folder, signature).exists()
+
     def digest(self, *args, **kwargs) -> str | None:
         """The hex digest that names these arguments' program on disk (the file `<name>-<environment>-<digest>.jaxexport`),
         or None when it has no signature kept on disk (such calls run `eqx.filter_jit`)."""

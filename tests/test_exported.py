@@ -568,3 +568,19 @@ def test_the_fusion_emitters_setting_names_its_modes(monkeypatch):
     monkeypatch.setenv("JAXTRACK_FUSION_EMITTERS", "tiered")
     with pytest.raises(ValueError, match="JAXTRACK_FUSION_EMITTERS must be 0, 1 or auto"):
         _exported.compile_mode("cpu")
+
+
+def test_is_kept_says_whether_a_signature_is_on_disk_without_loading_it(folder, monkeypatch):
+    """`persistent_jit.is_kept`: False before the program is exported, True after (for another wrapper too: a later
+    process), False for another shape, under no folder and for weakly typed arrays (the calls that run
+    eqx.filter_jit)."""
+    m, x = Scaled(jnp.arange(3.0), 2), jnp.array([1.0, -2.0, 0.5])
+    f = persistent_jit(model)
+    assert not f.is_kept(m, x)
+    f(m, x)
+    fresh = persistent_jit(model)
+    assert fresh.is_kept(m, x) and not fresh.memory and fresh.loaded == 0  # nothing loaded
+    assert not fresh.is_kept(m, jnp.ones(4))
+    assert not fresh.is_kept(Scaled(jnp.arange(3.0), 2), 1.0 * jnp.asarray(2.0))  # a weakly typed scalar
+    monkeypatch.setattr(_exported, "_FOLDER", [None])
+    assert not fresh.is_kept(m, x)

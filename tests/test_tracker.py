@@ -547,6 +547,41 @@ def test_the_recovery_compile_starts_at_the_first_doubt(sequence, lines_sift):
             tracker.keyframes.keyframes, tracker.keyframes.tried = saved_keyframes
 
 
+@pytest.mark.xdist_group("lines_sift")
+def test_the_doubt_warm_up_loads_a_search_kept_on_disk_after_the_first_frame(sequence, lines_sift, monkeypatch):
+    """"doubt" with the search's program on disk (an earlier process exported it: a load, not a compile): the first
+    frame reported OK starts the background warm-up, so that no first lost frame waits for the load; the disk is asked
+    once per tracker, with the arguments the search takes."""
+    from jaxtrack.track import _tracker
+
+    tracker, state, _ = lines_sift
+    saved = dict(vars(tracker))
+    saved_keyframes = None if tracker.keyframes is None else (list(tracker.keyframes.keyframes), list(tracker.keyframes.tried))
+    asked = []
+
+    def is_kept(*args):
+        asked.append(args)
+        return True
+
+    monkeypatch.setattr(_tracker._recover_pose_jit, "is_kept", is_kept)
+    try:
+        tracker.warm_up_recovery, tracker._recovery_warmup, tracker._recovery_kept_asked = "doubt", None, False
+        ok_state, ok, _ = tracker.step(state, sequence["images"][2])
+        assert int(ok.status) == jt.Status.OK
+        thread = tracker._recovery_warmup
+        assert thread is not None and thread.name == "jaxtrack-recovery-compile"
+        assert len(asked) == 1 and asked[0][-1] is tracker.config.recovery and asked[0][1].shape == (1, *sequence["images"][2].shape)
+        thread.join()
+        tracker._recovery_warmup = None
+        tracker.step(ok_state, sequence["images"][3])
+        assert len(asked) == 1 and tracker._recovery_warmup is None  # asked once: no second warm-up from an OK frame
+    finally:
+        vars(tracker).clear()
+        vars(tracker).update(saved)
+        if saved_keyframes is not None:
+            tracker.keyframes.keyframes, tracker.keyframes.tried = saved_keyframes
+
+
 def test_recovery_is_on_by_default_and_the_step_program_does_not_depend_on_it(sequence):
     """Issue 24: without resets the search after a LOST frame is what runs (`TrackerConfig.recovery` on by default;
     `track_sequence` turns it off for the RBOT protocol's oracle resets, and when asked); the compiled step sees a

@@ -359,7 +359,9 @@ class Tracker:
             `jaxtrack.enable_compilation_cache`). The poses are the same either way.
         warm_up_recovery: when to compile the recovery search (`TrackerConfig.recovery`) in a background thread:
             "doubt" (the default) at the first frame reported UNCERTAIN or LOST, so that a run that never doubts pays
-            no compile (the keyframes for the PnP are still taken: a SIFT pass at `start` and per new view); "first frame" (or True) after the first frame ($JAXTRACK_RECOVERY_WARMUP=1); "off" (or False;
+            no compile (the keyframes for the PnP are still taken: a SIFT pass at `start` and per new view), or after
+            the first frame where an earlier process kept the program on disk (then it is a load, 0.3-0.5 s in the
+            background, and no first search waits for it); "first frame" (or True) after the first frame ($JAXTRACK_RECOVERY_WARMUP=1); "off" (or False;
             $JAXTRACK_RECOVERY_WARMUP=0) never: the first lost frame compiles it in the tracking thread.
         rectangular_texels: build the appearance model's atlas with rectangular grids on elongated faces
             (`make_texture_atlas(rectangular=True)`: texels about `texel_mm` along and across a sliver, 3x fewer on the
@@ -409,6 +411,7 @@ class Tracker:
         self.recoveries = 0  # frames RECOVERED since `start`
         self._recovery_warmup: threading.Thread | None = None
         self._recovery_warmup_error: BaseException | None = None  # what the background compile raised, if it did
+        self._recovery_kept_asked = False  # whether the search's program was looked for on disk (`_recovery_kept`)
         self._recovery_wait_left = RECOVERY_COMPILE_WAIT_S  # what lost frames may still wait for that compile
         self._failed_searches = 0  # searches in a row that recovered nothing (`RecoveryConfig.max_skip`)
         self._searches_to_skip = 0  # lost frames still to pass without a search
@@ -833,7 +836,7 @@ class Tracker:
         step_start = time.perf_counter()
         new_state, result, host_s = self._run_step(state, frames, frames_j, offsets, params, crop_shape, scales, timings=timings)
         timings["step_s"] = time.perf_counter() - step_start - host_s
-        if recover and self._wants_recovery_warmup(result):  # before a search of this frame: not in this thread
+        if recover and self._wants_recovery_warmup(result, new_state, frames_j, params):  # before this frame's search
             self._warm_up_recovery(new_state, frames_j, params)
         recovery = None
         if int(result.status) != Status.LOST:  # the object is back (or never lost): the search's backoff starts over
@@ -983,13 +986,27 @@ class Tracker:
             raise ValueError(f'Tracker.warm_up_recovery must be "doubt", "first frame" or "off" (or True / False), got {value!r}')
         return when
 
-    def _wants_recovery_warmup(self, result: FrameResult) -> bool:
-        """Whether to start the search's background compile after this frame (`warm_up_recovery`)."""
+    def _wants_recovery_warmup(self, result: FrameResult, state: TrackerState | None = None, frames_j=None,
+                               params: TrackerParams | None = None) -> bool:
+        """Whether to start the search's background compile after this frame (`warm_up_recovery`; with the frame's
+        `state`, frames and params, "doubt" also asks whether the program is on disk: `_recovery_kept`)."""
         when = self._warm_up_mode()
         if (when == "off" or self._recovery_warmup is not None or self.recovery_modality() is None
                 or not self.config.recovery.hypotheses):
             return False
-        return when == "first frame" or int(result.status) in (Status.UNCERTAIN, Status.LOST)
+        if when == "first frame" or int(result.status) in (Status.UNCERTAIN, Status.LOST):
+            return True
+        return state is not None and self._recovery_kept(state, frames_j, params)
+
+    def _recovery_kept(self, state: TrackerState, frames_j, params: TrackerParams) -> bool:
+        """Whether an earlier process kept the search's program on disk (`persistent_jit.is_kept`: exported, and its
+        executable in the compile cache beside it): the "doubt" warm-up then loads it after the first frame, so
+        that the first lost frame finds it ready (a search waited up to 0.55 s for the load at the first doubt). Asked
+        once per tracker (the signature is pickled and hashed: about a millisecond)."""
+        if self._recovery_kept_asked:
+            return False
+        self._recovery_kept_asked = True
+        return _recover_pose_jit.is_kept(*self._recovery_args(state, frames_j, jnp.stack([state.T_world_root] * 2), params))
 
     def _warm_up_recovery(self, state: TrackerState, frames_j, params: TrackerParams) -> None:
         """Compile the recovery program in a background thread (after a step: that step's compile comes first), so
