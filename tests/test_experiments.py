@@ -94,7 +94,8 @@ def test_bench_track_quick(track_smoke):
     assert stages["calls"][f"{region}: rows"] == stages["calls"]["refinement solve"] == stages["rounds"] >= 1
     # The table: one row for the configuration with every column filled, the breakdown and the goals.
     row = _markdown_rows(text, "region")[0]
-    assert len(row) == 13 and row[1] == "1" and float(row[3]) > 0
+    assert len(row) == 14 and row[1] == "1" and float(row[3]) > 0
+    assert row[11] == "- (one build)"  # the suite's quick build only ($JAXTRACK_FUSION_EMITTERS=0): no second tier
     assert "| sum of the stages |" in text and "| whole step (`Tracker.step`, same inputs) |" in text
     assert "region only, 1 camera:" in text and "ms per frame (goal ≤ 10)" in text
 
