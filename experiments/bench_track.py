@@ -275,7 +275,7 @@ def worker(spec: dict) -> dict:
         for k in range(2, seq.num_frames):
             state, _, info = tracker.step(state, frames(k))
             quick.append(info["timings"]["total_s"])
-        _tiered.wait_for_optimised_programs(timeout=900)
+        out["swapped"] = _tiered.wait_for_optimised_programs(timeout=900)
         out["optimised_after_s"] = time.perf_counter() - t_ready
         out["quick_frame_ms"] = 1000.0 * float(np.median(quick)) if quick else float("nan")
         out["optimise_failures"] = _tiered.optimise_failures()
@@ -377,7 +377,7 @@ def _fmt(x, digits=1):
 def _quick(cold) -> str:
     if "optimised_after_s" not in cold:
         return "- (one build)"
-    failed = " (optimising failed)" if cold.get("optimise_failures") else ""
+    failed = " (optimising failed)" if cold.get("optimise_failures") else "" if cold.get("swapped", True) else " (not swapped)"
     return f"{_fmt(cold['quick_frame_ms'])} ms, {_fmt(cold['optimised_after_s'])} s{failed}"
 
 

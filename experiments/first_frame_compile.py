@@ -69,6 +69,9 @@ def worker(seq_dir: str, cues: tuple[str, ...], cache: str) -> dict:
     xla = [float(s) for s in re.findall(r"Finished XLA compilation of .* in ([0-9.]+) sec", text)]
     tracing = [float(s) for s in re.findall(r"Finished tracing .* in ([0-9.]+) sec", text)]
     lowering = [float(s) for s in re.findall(r"Finished jaxpr to MLIR module conversion .* in ([0-9.]+) sec", text)]
+    from jaxtrack import wait_for_optimised_programs
+
+    wait_for_optimised_programs(timeout=600)  # after the timing: no background compile beside the next run's
     return {"start_s": start_s, "first_frame_s": total_s, "xla_s": sum(xla), "tracing_s": sum(tracing),
             "lowering_s": sum(lowering), "largest_xla_s": sorted(xla, reverse=True)[:4]}
 

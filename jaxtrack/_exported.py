@@ -21,8 +21,10 @@ entry whose program fails to run (then for good, in this process). A pickle that
 misses: the program is exported again under another name.
 
 Every program here, kept or plain, compiles with `compiler_options()` (XLA's defaults; $JAXTRACK_FUSION_EMITTERS=0
-trades run time for a shorter compile, below), except a `tiered` kept program (the tracker's step): with an empty cache
-it compiles quickly first and a background process makes its optimised build (`jaxtrack._tiered`).
+trades run time for a shorter compile, below), except, in the default "tiered" mode, a `tiered` kept program (the
+tracker's step: with an empty cache it compiles quickly first and a background process makes its optimised build,
+`jaxtrack._tiered`) and a `quick` kept program (run once per start: the quick build only). Without a folder both take
+the plain path with `compiler_options()`.
 
 Off unless a folder is set: `enable_compilation_cache` sets it (`jaxtrack track`, `bench`, the experiments);
 `JAXTRACK_EXPORT_CACHE=0` turns it off. Serialisation needs the `flatbuffers` package (a dependency).
@@ -96,6 +98,7 @@ def _nested_options_error(error: Exception) -> bool:
 
 
 _PLAIN = object()  # an entry meaning "this signature runs eqx.filter_jit"
+_MISSING_TIER = object()  # `persistent_jit._tier`: not asked yet
 
 
 def enable_exported_cache(folder: str | os.PathLike | None) -> pathlib.Path | None:
@@ -226,7 +229,11 @@ def _remove_stale(written: pathlib.Path) -> None:
             other_name, other_tag, _ = path.name.rsplit("-", 2)
             if other_name == name and other_tag != tag and time.time() - path.stat().st_mtime > STALE_AFTER_S:
                 path.unlink()
-                path.with_name(path.name + ".optimised").unlink(missing_ok=True)  # its `jaxtrack._tiered` mark
+                from ._tiered import lock_path, mark_path
+
+                mark_path(path).unlink(missing_ok=True)  # its `jaxtrack._tiered` mark
+                if time.time() - _mtime_or_now(lock_path(path)) > STALE_AFTER_S:
+                    lock_path(path).unlink(missing_ok=True)  # a lock no child released
         except (OSError, ValueError):  # removed by another process meanwhile, or a name of another form
             continue
     for path in written.parent.glob(".*.jaxexport.*"):  # temporary files of writers that died
@@ -235,6 +242,13 @@ def _remove_stale(written: pathlib.Path) -> None:
                 path.unlink()
         except OSError:
             continue
+
+
+def _mtime_or_now(path: pathlib.Path) -> float:
+    try:
+        return path.stat().st_mtime
+    except OSError:
+        return time.time()
 
 
 def _call_device(dynamic):
@@ -296,8 +310,9 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
         tiered: in the "tiered" `compile_mode`, with the on-disk caches on, a kept program compiles quickly first
             (`CPU_COMPILER_OPTIONS`) and its build with XLA's defaults replaces it once a background process has made
             it (`jaxtrack._tiered`); a process that finds that build marked done loads it at once.
-        quick: in the "tiered" `compile_mode`, the quick build only (`CPU_COMPILER_OPTIONS`): for a program that runs
-            once per start, whose compile the first frame waits for and whose run time does not matter.
+        quick: in the "tiered" `compile_mode`, a kept program's quick build only (`CPU_COMPILER_OPTIONS`): for a
+            program that runs once per start, whose compile the first frame waits for and whose run time does not matter.
+            (Without the on-disk folder `tiered` and `quick` programs take the plain path, `compiler_options()`.)
 
     Attributes:
         loaded: signatures this process found on disk; exported: signatures it traced and wrote.
@@ -374,16 +389,18 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
 
     def _tier(self, folder: pathlib.Path, base: tuple):
         """(program path, whether its optimised build is in use) of a signature in the tiered mode, or None where it
-        compiles once with XLA's defaults (no compile cache for a child to fill, no signature kept on disk)."""
-        tier = self._tiers.get(base)
-        if tier is None:
-            from . import _tiered
+        compiles once with XLA's defaults (no compile cache for a child to fill, no signature kept on disk). Asked once
+        per signature, export folder and compile cache (`jaxtrack._tiered.mark_content`)."""
+        from . import _tiered
 
+        key = (base, folder, _tiered.mark_content(), _tiered.available())
+        tier = self._tiers.get(key, _MISSING_TIER)
+        if tier is _MISSING_TIER:
             treedef, is_dynamic, static, avals = base[:4]
-            signature = self._signature(treedef, is_dynamic, static, avals) if _tiered.available() else None
+            signature = self._signature(treedef, is_dynamic, static, avals) if key[-1] else None
             path = None if signature is None else self._path(folder, signature)
-            tier = self._tiers[base] = False if path is None else (path, _tiered.is_marked(path))
-        return tier or None
+            tier = self._tiers[key] = None if path is None else (path, _tiered.is_marked(path))
+        return tier
 
     def _optimise_request(self, base: tuple, path: pathlib.Path, quick: _Entry, device):
         """The `jaxtrack._tiered.Request` that replaces the first tier's `quick` entry by XLA's default build."""
@@ -392,10 +409,12 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
         def make_entry():
             return _Entry(quick.exported, quick.out_treedef, quick.out_is_dynamic, quick.out_static, device, None)
 
+        key = (base, path.parent, _tiered.mark_content(), True)  # as `_tier` keys it
+
         def swap(entry):
             with self._lock:
                 self.memory[(*base, _options_key(None))] = entry
-                self._tiers[base] = (path, True)
+                self._tiers[key] = (path, True)
 
         structs = tuple(jax.ShapeDtypeStruct(shape, dtype) for shape, dtype in base[3])
         return _tiered.Request(program=path, avals=base[3], make_entry=make_entry, swap=swap, structs=structs)

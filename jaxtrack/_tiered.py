@@ -4,15 +4,17 @@ XLA:CPU compiles the tracker's step programs (`track_step`, `start_frame`) with 
 times the time of its older elemental emitters, and the programs it makes run 15-30 % faster (README "Fast compile,
 slower frames"). With an empty compile cache a `persistent_jit(..., tiered=True)` program (`$JAXTRACK_FUSION_EMITTERS`
 unset or `auto`, on the CPU, with the on-disk caches on) is compiled with the quick options first, so the first frame
-waits for the shorter compile; once it has run, a child process (`python -m jaxtrack._tiered`, at a lower priority)
+waits for the shorter compile; once it has run, a child process (`python -m jaxtrack._tiered_child`, at a lower priority)
 compiles the exported program with XLA's defaults into the shared on-disk compile cache and marks it done
 (`<program>.jaxexport.optimised`); this process then loads it from that cache in a background thread and the calls
 after that run the optimised program (the same program, compiled otherwise: poses agree to float rounding, not bit for
 bit). A later process that finds the mark loads the optimised program at once.
 
 The child outlives this process (a short run leaves the compile to finish for the next one); one child at a time
-compiles a given program (a lock file beside it; a lock older than `LOCK_STALE_S` is taken over). `wait_for_optimised_programs`
-waits for the swap (benchmarks time the steady state after it).
+compiles a given program (a lock file beside it, holding the child's pid: a lock whose process is gone, or older than
+`LOCK_STALE_S`, is taken over). The child marks a program only once a second compile found it in the cache (a cache
+write that failed, a full disk, leaves no mark). `wait_for_optimised_programs` waits for the swap (benchmarks time the
+steady state after it).
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ import sys
 import tempfile
 import threading
 import time
-import warnings
+from collections.abc import Callable
 
 import jax
 
@@ -40,8 +42,6 @@ BATCH_WAIT_S = 0.5
 LOCK_STALE_S = 600.0
 # How often a process whose program another process's child compiles looks for the mark.
 POLL_S = 0.5
-# The child's niceness: the tracking process keeps its core while the child compiles.
-CHILD_NICE = 10
 
 
 def mark_path(program: pathlib.Path) -> pathlib.Path:
@@ -54,7 +54,7 @@ def lock_path(program: pathlib.Path) -> pathlib.Path:
 
 def mark_content() -> str:
     """What decides whether the compile cache holds a program's optimised executable besides the program itself: the
-    cache folder and $XLA_FLAGS (both in XLA's cache key)."""
+    cache folder (where it lives) and $XLA_FLAGS (part of XLA's cache key)."""
     return json.dumps({"cache_dir": str(jax.config.jax_compilation_cache_dir), "xla_flags": os.environ.get("XLA_FLAGS", "")},
                       sort_keys=True)
 
@@ -79,8 +79,8 @@ class Request:
 
     program: pathlib.Path
     avals: tuple
-    make_entry: object
-    swap: object
+    make_entry: Callable
+    swap: Callable
     structs: tuple
 
 
@@ -92,6 +92,7 @@ class _Optimiser:
         self._pending: list[Request] = []
         self._busy = False  # a batch is in flight
         self._loading = False  # this process is loading an optimised executable (XLA; not to be left at exit)
+        self._closing = False  # the interpreter is exiting: no new load starts
         self._thread: threading.Thread | None = None
         self.failures: list[str] = []
         self.requested = 0
@@ -117,9 +118,11 @@ class _Optimiser:
         return True
 
     def at_exit(self) -> None:
-        """A load in flight is joined (XLA aborts a process that exits while it compiles in a thread); a child is left
-        to finish (its compile serves the next process)."""
+        """A load in flight is joined (XLA aborts a process that exits while it compiles in a thread) and no new one
+        starts (other exit handlers may still wait a while); a child is left to finish (its compile serves the next
+        process)."""
         with self._cond:
+            self._closing = True
             while self._loading:
                 self._cond.wait()
 
@@ -143,22 +146,24 @@ class _Optimiser:
                     self._cond.notify_all()
 
     def _optimise(self, batch: list[Request]) -> None:
-        own, others = [], []
-        for request in batch:
-            if is_marked(request.program):
-                continue
-            (own if _take_lock(request.program) else others).append(request)
-        if own:
-            _run_child(own, self.failures)
-        for request in others:  # another process's child compiles it: wait for its lock to go
-            lock = lock_path(request.program)
-            while lock.exists() and time.time() - _mtime(lock) < LOCK_STALE_S:
-                time.sleep(POLL_S)
+        waiting = [r for r in batch if not is_marked(r.program)]
+        for _ in range(2):  # a program whose lock holder gave up unmarked is tried once more by this process
+            own = [r for r in waiting if _take_lock(r.program)]
+            if own:
+                _run_child(own, self.failures)
+            for request in waiting:  # another process's child compiles these: wait for its lock to go
+                while _lock_held(request.program):
+                    time.sleep(POLL_S)
+            waiting = [r for r in waiting if r not in own and not is_marked(r.program)]
+            if not waiting:
+                break
         for request in batch:
             if not is_marked(request.program):
                 continue
             entry = request.make_entry()
             with self._cond:
+                if self._closing:
+                    return
                 self._loading = True
             try:
                 entry.compile(request.structs)  # a hit in the compile cache the child filled
@@ -177,13 +182,51 @@ def _mtime(path: pathlib.Path) -> float:
         return 0.0
 
 
+def _holder(lock: pathlib.Path) -> int | None:
+    try:
+        return int(lock.read_text().strip())
+    except (OSError, ValueError):
+        return None
+
+
+def _alive(pid: int | None) -> bool:
+    if pid is None:
+        return True  # not written yet: count it as held until it is stale
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # another user's process
+        return True
+    return True
+
+
+def _lock_held(program: pathlib.Path) -> bool:
+    """Whether a live process holds `program`'s lock (one whose holder is gone, or older than `LOCK_STALE_S`, is not)."""
+    lock = lock_path(program)
+    return lock.exists() and time.time() - _mtime(lock) < LOCK_STALE_S and _alive(_holder(lock))
+
+
+def _write_holder(lock: pathlib.Path, pid: int) -> None:
+    with contextlib.suppress(OSError):
+        lock.write_text(str(pid))
+
+
+def _release(program: pathlib.Path, pid: int) -> None:
+    """Remove `program`'s lock if `pid` still holds it (not one another process took over)."""
+    lock = lock_path(program)
+    if _holder(lock) == pid:
+        with contextlib.suppress(OSError):
+            lock.unlink()
+
+
 def _take_lock(program: pathlib.Path) -> bool:
     lock = lock_path(program)
     for _ in range(2):
         try:
             handle = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
         except FileExistsError:
-            if time.time() - _mtime(lock) < LOCK_STALE_S:
+            if _lock_held(program):
                 return False
             with contextlib.suppress(OSError):
                 lock.unlink()  # a dead child's: take it over
@@ -194,6 +237,13 @@ def _take_lock(program: pathlib.Path) -> bool:
             file.write(str(os.getpid()))
         return True
     return False
+
+
+def _child_environment() -> dict:
+    """This environment with the folder that holds this `jaxtrack` first on the child's path, on the CPU."""
+    root = str(pathlib.Path(__file__).resolve().parent.parent)
+    path = os.pathsep.join(p for p in (root, os.environ.get("PYTHONPATH", "")) if p)
+    return dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=path)
 
 
 def _run_child(requests: list[Request], failures: list[str]) -> None:
@@ -207,20 +257,24 @@ def _run_child(requests: list[Request], failures: list[str]) -> None:
     handle, spec_path = tempfile.mkstemp(prefix="jaxtrack-optimise-", suffix=".json")
     with os.fdopen(handle, "w") as file:
         json.dump(spec, file)
-    env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=os.pathsep.join(p for p in sys.path if p))
     # Its messages go to a file, not a pipe: a child whose parent has exited would write into a closed pipe.
     with tempfile.TemporaryFile() as log:
         try:
             # A session of its own: the child finishes its compile after this process exits (or is interrupted).
-            proc = subprocess.Popen([sys.executable, "-m", "jaxtrack._tiered", spec_path], env=env, stdin=subprocess.DEVNULL,
-                                    stdout=subprocess.DEVNULL, stderr=log, start_new_session=True)
+            proc = subprocess.Popen([sys.executable, "-m", "jaxtrack._tiered_child", spec_path], env=_child_environment(),
+                                    stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=log, start_new_session=True)
         except OSError as error:
             for r in requests:
-                with contextlib.suppress(OSError):
-                    lock_path(r.program).unlink()
+                _release(r.program, os.getpid())
+            with contextlib.suppress(OSError):
+                os.unlink(spec_path)
             failures.append(f"the optimising process did not start: {error}")
             return
+        for r in requests:  # the child holds them now (it may outlive this process)
+            _write_holder(lock_path(r.program), proc.pid)
         proc.wait()
+        for r in requests:  # a child that died before it released them
+            _release(r.program, proc.pid)
         if proc.returncode != 0:
             log.seek(0)
             failures.append(f"the optimising process exited {proc.returncode}: {log.read().decode(errors='replace')[-800:]}")
@@ -250,43 +304,3 @@ def optimise_counts() -> tuple[int, int]:
 def optimise_failures() -> list[str]:
     """Why background optimisations of this process failed (empty when none did)."""
     return list(_OPTIMISER.failures)
-
-
-def _child_main(spec_path: str) -> int:
-    """Compile each program of the spec with XLA's defaults into the compile cache, then mark it (the child)."""
-    with contextlib.suppress(OSError, AttributeError):
-        os.nice(CHILD_NICE)
-    spec = json.loads(pathlib.Path(spec_path).read_text())
-    with contextlib.suppress(OSError):
-        os.unlink(spec_path)
-    jax.config.update("jax_enable_x64", spec["x64"])
-    jax.config.update("jax_compilation_cache_dir", spec["cache_dir"])
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", spec["min_compile_s"])
-    from ._exported import _Entry, _loads
-
-    device = jax.devices("cpu")[0]
-    status = 0
-    for program in spec["programs"]:
-        path = pathlib.Path(program["path"])
-        try:
-            stored = _loads(path.read_bytes())
-            entry = _Entry(jax.export.deserialize(stored["exported"]), *stored["out"], device, None)
-            entry.compile([jax.ShapeDtypeStruct(tuple(shape), dtype) for shape, dtype in program["avals"]])
-            handle, temporary = tempfile.mkstemp(prefix=f".{mark_path(path).name}.", dir=path.parent)
-            with os.fdopen(handle, "w") as file:
-                file.write(spec["mark"])
-            os.replace(temporary, mark_path(path))
-        except Exception as error:  # noqa: BLE001  (reported through the exit status; the parent keeps the quick build)
-            print(f"{path.name}: {type(error).__name__}: {error}", file=sys.stderr)
-            status = 1
-        finally:
-            with contextlib.suppress(OSError):
-                lock_path(path).unlink()
-    return status
-
-
-if __name__ == "__main__":
-    if len(sys.argv) != 2:
-        raise SystemExit("usage: python -m jaxtrack._tiered SPEC.json (started by jaxtrack itself)")
-    warnings.simplefilter("ignore")
-    raise SystemExit(_child_main(sys.argv[1]))

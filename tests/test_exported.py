@@ -584,3 +584,22 @@ def test_is_kept_says_whether_a_signature_is_on_disk_without_loading_it(folder, 
     assert not fresh.is_kept(Scaled(jnp.arange(3.0), 2), 1.0 * jnp.asarray(2.0))  # a weakly typed scalar
     monkeypatch.setattr(_exported, "_FOLDER", [None])
     assert not fresh.is_kept(m, x)
+
+
+def test_a_failed_optimising_child_is_reported_and_releases_its_locks(tmp_path):
+    """A child that cannot compile its program (the file is gone) exits 1 with the reason, leaves no mark and releases
+    the lock it held; a lock whose holder process is gone is taken over, one a live process holds is not."""
+    from jaxtrack import _tiered
+
+    program = tmp_path / "gone.jaxexport"
+    assert _tiered._take_lock(program) and not _tiered._take_lock(program)  # held by this (live) process
+    failures = []
+    request = _tiered.Request(program=program, avals=(((3,), "float32"),), make_entry=None, swap=None, structs=())
+    _tiered._run_child([request], failures)
+    assert len(failures) == 1 and "gone.jaxexport" in failures[0] and "FileNotFoundError" in failures[0], failures
+    assert not _tiered.lock_path(program).exists() and not _tiered.is_marked(program)
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True, check=True)
+    _tiered.lock_path(program).write_text(dead.stdout.strip())  # a lock of a process that has exited
+    assert not _tiered._lock_held(program) and _tiered._take_lock(program)
+    _tiered._release(program, os.getpid())
+    assert not _tiered.lock_path(program).exists()

@@ -999,10 +999,12 @@ class Tracker:
         return state is not None and self._recovery_kept(state, frames_j, params)
 
     def _recovery_kept(self, state: TrackerState, frames_j, params: TrackerParams) -> bool:
-        """Whether an earlier process kept the search's program on disk (`persistent_jit.is_kept`: exported, and its
-        executable in the compile cache beside it): the "doubt" warm-up then loads it after the first frame, so
-        that the first lost frame finds it ready (a search waited up to 0.55 s for the load at the first doubt). Asked
-        once per tracker (the signature is pickled and hashed: about a millisecond)."""
+        """Whether an earlier process kept the search's program on disk (`persistent_jit.is_kept`: exported; its
+        executable is then normally in the compile cache too): the "doubt" warm-up then starts after the first frame,
+        a load, so that the first lost frame finds it ready (a search waited up to 0.55 s for the load at the first
+        doubt). Where the compile cache does not hold it (cleared, other compile options or $XLA_FLAGS) that warm-up
+        is a compile in the background after the first frame, as with "first frame". Asked once per tracker (the
+        signature is pickled and hashed: about a millisecond)."""
         if self._recovery_kept_asked:
             return False
         self._recovery_kept_asked = True
