@@ -329,7 +329,9 @@ class persistent_jit:  # lower case: used like a decorator, as eqx.filter_jit
         self.exported = 0
         self._lock = threading.Lock()
         self.tiered, self.quick = tiered, quick
-        self._tiers: dict = {}  # (signature key without options) -> (program path, optimised in use)
+        # (signature key without options, export folder, compile cache, cache on) -> (program path, optimised in use) or
+        # None (not tiered): `_tier`
+        self._tiers: dict = {}
 
     def plain(self, *args, **kwargs):
         """`eqx.filter_jit(fn)(*args, **kwargs)`, compiled with `compiler_options()` of jax's default backend (read at
