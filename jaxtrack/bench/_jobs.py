@@ -128,6 +128,10 @@ def _prepare_process(settings: BenchSettings, use_cache: bool) -> None:
     import jax
 
     cv2.setNumThreads(1)  # OpenCV's worker threads compete with XLA's
+    # One build of the tracker's step, XLA's optimised one, unless $JAXTRACK_FUSION_EMITTERS says otherwise: a dataset's
+    # figures must not depend on when a background compile finished (`jaxtrack._tiered`); over a dataset the compile is
+    # paid once.
+    os.environ.setdefault("JAXTRACK_FUSION_EMITTERS", "1")
     if settings.x64 and not jax.config.jax_enable_x64:
         jax.config.update("jax_enable_x64", True)
     if use_cache:
