@@ -17,7 +17,6 @@ equal vertex and face counts and equal settings share it), its own crop, status 
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import time
 from collections.abc import Sequence
@@ -82,7 +81,7 @@ class JointTracker:
                                  "the same cameras)")
         for t in self.trackers:  # no search after a LOST frame (`step`): nor its keyframes, taken at `start` and on
             if t.config.recovery is not None:  # OK frames of a new view (a SIFT pass each)
-                t.config = dataclasses.replace(t.config, recovery=None)
+                t.config = t.config.without_recovery()
         self.occluder_radius_px = int(occluder_radius_px)
         if self.occluder_radius_px < 0:
             raise ValueError(f"JointTracker: occluder_radius_px must be ≥ 0, got {occluder_radius_px}")

@@ -271,7 +271,7 @@ def track_sequence(
     if config is None:
         config = _config_from(cues, region, working_shape, _recovers(recovery, reset_on_failure))
     elif config.recovery is not None and (recovery is False or (reset_on_failure and recovery is not True)):
-        config = dataclasses.replace(config, recovery=None)  # asked not to, or the oracle resets instead of the search
+        config = config.without_recovery()  # asked not to, or the oracle resets instead of the search
     limits = (articulated["lower"], articulated["upper"]) if joint_limits else None
     tracker = Tracker(mesh, rig, model=model, config=config, params=params, joint_limits=limits,
                       **({} if pose_prior is None else {"pose_prior": pose_prior}))

@@ -245,6 +245,10 @@ class TrackerConfig(eqx.Module):
         contour = [m for m in self.modalities() if m.contour]
         return bool(contour) and not any(m.needs_render for m in contour)
 
+    def without_recovery(self) -> TrackerConfig:
+        """This configuration with no hypothesis search (`recovery` None); itself where it has none."""
+        return self if self.recovery is None else dataclasses.replace(self, recovery=None)
+
     def recovers(self) -> bool:
         """Whether a LOST frame starts the hypothesis search (`recovery`): it needs the calibrated status (what
         says LOST) and the line modality (what scores and refines the hypotheses); a rigid object's sparse

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import atexit
 import copy
-import dataclasses
 import os
 import threading
 import time
@@ -450,7 +449,7 @@ class Tracker:
         """`config` with `recovery` None, made once per config object."""
         memo = self._step_config_memo
         if memo is None or memo[0] is not self.config:
-            step_config = self.config if self.config.recovery is None else dataclasses.replace(self.config, recovery=None)
+            step_config = self.config.without_recovery()
             memo = self._step_config_memo = (self.config, step_config)
         return memo[1]
 
