@@ -80,8 +80,7 @@ class JointTracker:
                 raise ValueError(f"JointTracker: trackers[{i}] has another rig than trackers[0] (the objects must be seen by "
                                  "the same cameras)")
         for t in self.trackers:  # no search after a LOST frame (`step`): nor its keyframes, taken at `start` and on
-            if t.config.recovery is not None:  # OK frames of a new view (a SIFT pass each)
-                t.config = t.config.without_recovery()
+            t.config = t.config.without_recovery()  # OK frames of a new view (a SIFT pass each)
         self.occluder_radius_px = int(occluder_radius_px)
         if self.occluder_radius_px < 0:
             raise ValueError(f"JointTracker: occluder_radius_px must be ≥ 0, got {occluder_radius_px}")
