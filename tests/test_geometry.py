@@ -56,6 +56,31 @@ def test_forward_kinematics_matches_explicit_composition():
     np.testing.assert_allclose(part_transforms(rigid_model(jnp.float64), jnp.asarray(T_root), jnp.zeros(0))[0], T_root)
 
 
+def test_part_point_columns_are_the_points_moved_by_their_own_parts_transform():
+    from jaxtrack.geometry import part_point_columns, transform_point_columns
+
+    axes = [(0, 0, 1), (0, 1, 0), (1, 0, 0)]
+    points = [(100.0, 0, 0), (200.0, 0, 0), (-100.0, 0, 0)]
+    model = chain_model([-1, 0, 1, 0], axes, points)
+    T_parts = part_transforms(model, se3_exp(jnp.array([10.0, -5, 900, 0.1, 0.2, -0.3])), jnp.array([0.3, -0.7, 1.1]))
+    rng = np.random.default_rng(1)
+    p = jnp.asarray(rng.normal(size=(500, 3)) * 100, jnp.float32)
+    part = jnp.asarray(rng.integers(0, 4, 500), jnp.int32)
+    got = jax.jit(part_point_columns)(T_parts, part, p[:, 0], p[:, 1], p[:, 2])
+    want = transform_point_columns(T_parts[part], p[:, 0], p[:, 1], p[:, 2])  # every point's whole 4x4, gathered
+    for g, w in zip(got, want):
+        np.testing.assert_allclose(np.asarray(g), np.asarray(w), rtol=1e-6, atol=1e-3)
+    moved = np.stack([np.asarray(g) for g in got], -1)
+    for k in (0, 1, 2, 3):  # each part's points moved by that part's transform, not another's
+        T = np.asarray(T_parts[k], np.float64)
+        sel = np.asarray(part) == k
+        np.testing.assert_allclose(moved[sel], np.asarray(p, np.float64)[sel] @ T[:3, :3].T + T[:3, 3], atol=1e-2)
+    # one part: no gather, the points moved by it
+    one = part_point_columns(T_parts[:1], jnp.zeros(500, jnp.int32), p[:, 0], p[:, 1], p[:, 2])
+    np.testing.assert_allclose(np.stack(one, -1), np.asarray(p) @ np.asarray(T_parts[0, :3, :3]).T + np.asarray(T_parts[0, :3, 3]),
+                               atol=1e-2)
+
+
 def test_chain_model_rejects_bad_trees():
     with pytest.raises(ValueError, match="parents\\[0\\]"):
         chain_model([0, 0], [(0, 0, 1)], [(0, 0, 0)])

@@ -124,3 +124,17 @@ def test_traced_gaussian_blur_matches_a_reference_is_the_identity_at_zero_and_di
     h = 1e-5
     fd = (readout(1.2 + h) - readout(1.2 - h)) / (2 * h)
     np.testing.assert_allclose(jax.grad(readout)(1.2), fd, rtol=1e-6)
+
+
+def test_flat_bilinear_reads_exactly_what_sample_bilinear_reads():
+    from jaxtrack.image import sample_bilinear, sample_bilinear_flat
+
+    rng = np.random.default_rng(3)
+    img = jnp.asarray(rng.uniform(0, 255, (17, 23)), jnp.float32)
+    x = jnp.asarray(rng.uniform(-3, 26, (50, 40)), jnp.float32)  # some beyond the border: clamped, masked
+    y = jnp.asarray(rng.uniform(-3, 20, (50, 40)), jnp.float32)
+    want, want_inside = sample_bilinear(img[..., None], x, y)
+    got, inside = jax.jit(sample_bilinear_flat)(img, x, y)
+    assert np.array_equal(np.asarray(got), np.asarray(want[..., 0]))
+    assert np.array_equal(np.asarray(inside), np.asarray(want_inside))
+    assert 0 < np.mean(np.asarray(inside)) < 1

@@ -312,3 +312,50 @@ def test_the_atlas_keeps_only_cells_on_their_triangle_and_each_texel_centre_find
     edge = np.max(np.linalg.norm(v[f[face]] - np.roll(v[f[face]], 1, axis=1), axis=-1), axis=-1)
     distance = np.linalg.norm(np.asarray(atlas.texel_p_model)[idx] - points, axis=-1)
     assert np.all(distance <= 2.0 * edge / res[face] + 1e-6)
+
+
+def test_texels_of_a_two_part_chain_are_read_where_their_own_part_projects_them():
+    """`observe_texels` on a chain reads each texel through its part's pose: exactly what the plain formulation
+    (every texel's whole 4x4 part transform, a two-index bilinear read) reads, with the joint turned."""
+    from jaxtrack.cues.occlusion._histogram import to_gray
+    from jaxtrack.geometry import chain_model, part_transforms
+    from jaxtrack.image import gaussian_blur, sample_bilinear
+    from jaxtrack.render import box_mesh
+
+    box = box_mesh((80.0, 40.0, 40.0))
+    v = np.asarray(box.vertices, np.float64)
+    f = np.asarray(box.faces)
+    mesh = make_mesh(np.concatenate([v, v + [90.0, 0.0, 0.0]]), np.concatenate([f, f + len(v)]),
+                     vertex_part=np.repeat([0, 1], len(v)))
+    model = chain_model([-1, 0], [(0.0, 0.0, 1.0)], [(45.0, 0.0, 0.0)])
+    camera = jt.make_camera(np.array([[300.0, 0, 80], [0, 300.0, 60], [0, 0, 1]]), 160, 120)
+    T = np.eye(4, dtype=np.float32)
+    T[:3, 3] = (-40.0, 0.0, 600.0)
+    theta = jnp.asarray([0.6], jnp.float32)
+    rendered = Renderer(mesh, camera, model)(jnp.asarray(T), theta)
+    rng = np.random.default_rng(0)
+    images = jnp.asarray(rng.uniform(0, 255, (1, 120, 160)), jnp.float32)
+    atlas = make_texture_atlas(mesh, texel_mm=3.0)
+    params, config = occlusion_params(), OcclusionConfig()
+    cams = stack_cameras([camera])
+    obs = observe_texels(atlas, images, rendered.depth[None], cams, jnp.asarray(T), params, theta, model, config)
+
+    T_cam = (camera.T_cam_world @ part_transforms(model, jnp.asarray(T), theta))[atlas.texel_part]  # (T, 4, 4)
+    p = jnp.einsum("tij,tj->ti", T_cam[:, :3, :3], atlas.texel_p_model) + T_cam[:, :3, 3]
+    p_cols = [T_cam[:, i, 0] * atlas.texel_p_model[:, 0] + T_cam[:, i, 1] * atlas.texel_p_model[:, 1]
+              + T_cam[:, i, 2] * atlas.texel_p_model[:, 2] + T_cam[:, i, 3] for i in range(3)]
+    z = p_cols[2]
+    u = camera.K[0, 0] * (p_cols[0] / z) + camera.K[0, 1] * (p_cols[1] / z) + camera.K[0, 2]
+    w = camera.K[1, 1] * (p_cols[1] / z) + camera.K[1, 2]
+    gray = gaussian_blur(to_gray(images[0])[..., None], config.blur_sigma)
+    value, _ = sample_bilinear(gray, u, w)
+    ui = np.clip(np.round(np.asarray(u)).astype(int), 0, 159)
+    vi = np.clip(np.round(np.asarray(w)).astype(int), 0, 119)
+    assert np.allclose(np.asarray(p)[:, 2], np.asarray(z), atol=1e-3)
+    assert np.array_equal(np.asarray(obs.value[0]), np.asarray(value[:, 0]))
+    assert np.array_equal(np.asarray(obs.pixel[0]), vi * 160 + ui)
+    visible = np.asarray(obs.visible[0])
+    # Both parts are seen, and the turned part's texels land on the rendered object where visible.
+    for part in (0, 1):
+        assert np.sum(visible & (np.asarray(atlas.texel_part) == part)) > 100
+    assert np.all(np.isfinite(np.asarray(rendered.depth)[vi[visible], ui[visible]]))

@@ -13,6 +13,7 @@ from ._camera import stack_cameras as stack_cameras
 from ._camera import undistort_points as undistort_points
 from ._chain import KinematicModel as KinematicModel
 from ._chain import chain_model as chain_model
+from ._chain import part_point_columns as part_point_columns
 from ._chain import part_points_world as part_points_world
 from ._chain import part_transforms as part_transforms
 from ._chain import prismatic_twist as prismatic_twist

@@ -173,5 +173,21 @@ def part_transforms(model: KinematicModel, T_world_root: jax.Array, theta: jax.A
 def part_points_world(model: KinematicModel, T_world_root: jax.Array, theta: jax.Array, p_model: jax.Array, part: jax.Array):
     """World coordinates (N, 3) of model points (N, 3) of parts (N,) int at the pose (T_world_root, θ) (eq. 2).
     Jittable."""
-    T = part_transforms(model, T_world_root, theta)[part]  # (N, 4, 4)
-    return jnp.stack(transform_point_columns(T, p_model[:, 0], p_model[:, 1], p_model[:, 2]), -1)
+    T_parts = part_transforms(model, T_world_root, theta)
+    return jnp.stack(part_point_columns(T_parts, part, p_model[:, 0], p_model[:, 1], p_model[:, 2]), -1)
+
+
+def part_point_columns(T_parts: jax.Array, part: jax.Array, x: jax.Array, y: jax.Array, z: jax.Array):
+    """Each point moved by its own part's transform, as coordinate columns: T_parts (P, 4, 4), part (N,) int and
+    x, y, z (N,) → (x', y', z'), each (N,). The arithmetic of `transform_point_columns(T_parts[part], x, y, z)`.
+
+    Each entry of T_parts[part] is gathered on its own from a (P,) column: XLA:CPU wrote the whole (N, 4, 4)
+    gather out, in a transposed layout, before the arithmetic read it (the human's 170 000 texels on 4 cameras:
+    44 MB a frame; README, "Per-part transforms gathered by entry"). One part: no gather."""
+    if T_parts.shape[0] == 1:
+        return transform_point_columns(T_parts[0], x, y, z)
+
+    def entry(i, j):
+        return T_parts[:, i, j][part]
+
+    return tuple(entry(i, 0) * x + entry(i, 1) * y + entry(i, 2) * z + entry(i, 3) for i in range(3))

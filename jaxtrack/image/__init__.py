@@ -19,6 +19,7 @@ from ._pyramid import pyramid_shapes as pyramid_shapes
 from ._pyramid import resize_bilinear as resize_bilinear
 from ._pyramid import upsample_flow as upsample_flow
 from ._sampling import sample_bilinear as sample_bilinear
+from ._sampling import sample_bilinear_flat as sample_bilinear_flat
 from ._sampling import warp_bilinear as warp_bilinear
 from ._windows import crop_window as crop_window
 from ._windows import full_to_window as full_to_window

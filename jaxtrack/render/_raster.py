@@ -30,6 +30,7 @@ from .._status import Status, StatusError, first_failure, status_where
 from ..geometry import (
     Camera,
     KinematicModel,
+    part_point_columns,
     part_transforms,
     pixels_to_normalized,
     rigid_model,
@@ -104,9 +105,11 @@ def _project_vertices(mesh: Mesh, camera: Camera, model: KinematicModel, T_world
     """Camera-frame vertices (V, 3), ideal pixels (V, 2) (distortion is not rendered) and the
     part poses T_cam_part (P, 4, 4)."""
     T_cam_parts = camera.T_cam_world @ part_transforms(model, T_world_root, theta)
-    T = T_cam_parts[0] if model.num_parts == 1 else T_cam_parts[mesh.vertex_part]
     v = mesh.vertices
-    p_cam = jnp.stack(transform_point_columns(T, v[:, 0], v[:, 1], v[:, 2]), -1)
+    if model.num_parts == 1:
+        p_cam = jnp.stack(transform_point_columns(T_cam_parts[0], v[:, 0], v[:, 1], v[:, 2]), -1)
+    else:
+        p_cam = jnp.stack(part_point_columns(T_cam_parts, mesh.vertex_part, v[:, 0], v[:, 1], v[:, 2]), -1)
     z = p_cam[:, 2]
     safe_z = jnp.where(jnp.abs(z) > 1e-6, z, 1e-6)
     K = camera.K

@@ -23,7 +23,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ..geometry import KinematicModel, part_transforms, se3_adjoint, transform_point_columns
+from ..geometry import KinematicModel, part_point_columns, part_transforms, se3_adjoint, transform_point_columns
 
 
 def line_planes(n: jax.Array, m: jax.Array, normal: jax.Array | None = None, tangent_weight: jax.Array | None = None):
@@ -63,8 +63,9 @@ def line_planes(n: jax.Array, m: jax.Array, normal: jax.Array | None = None, tan
 
 def _world_point_columns(model: KinematicModel, T_parts: jax.Array, p_model: jax.Array, part: jax.Array):
     """World coordinates T(χ) X (eq. 2) of model points on their parts, as three (N,) arrays."""
-    T = T_parts[0] if model.num_parts == 1 else T_parts[part]  # (4, 4) rigid: skip the gather; else (N, 4, 4)
-    return transform_point_columns(T, p_model[..., 0], p_model[..., 1], p_model[..., 2])
+    if model.num_parts == 1:  # rigid: skip the gather
+        return transform_point_columns(T_parts[0], p_model[..., 0], p_model[..., 1], p_model[..., 2])
+    return part_point_columns(T_parts, part, p_model[..., 0], p_model[..., 1], p_model[..., 2])
 
 
 def _plane_residuals(a, normals: jax.Array, offsets: jax.Array) -> jax.Array:

@@ -23,8 +23,8 @@ import jax
 import jax.numpy as jnp
 
 from ..._device import to_device
-from ...geometry import Camera, KinematicModel, part_transforms, rigid_model
-from ...image import gaussian_blur, sample_bilinear
+from ...geometry import Camera, KinematicModel, part_point_columns, part_transforms, rigid_model
+from ...image import gaussian_blur, sample_bilinear_flat
 from ...render import RenderOutput
 from ._atlas import TextureAtlas, texel_index
 from ._histogram import box_sum, local_gain, patch_histogram_distance, to_gray
@@ -164,12 +164,13 @@ class TexelObservation(eqx.Module):
 
 
 def _observe_one(atlas, image, depth, camera, T_world_parts, params, config):
-    T_cam_parts = camera.T_cam_world @ T_world_parts
-    T = T_cam_parts[atlas.texel_part] if T_world_parts.shape[0] > 1 else T_cam_parts[0]
+    T_cam_parts = camera.T_cam_world @ T_world_parts  # (P, 4, 4)
     p, n = atlas.texel_p_model, atlas.texel_normal
     # Per coordinate columns: XLA:CPU reduces over a minor axis of 3 with a slow strided loop.
-    p_cam = [T[..., i, 0] * p[:, 0] + T[..., i, 1] * p[:, 1] + T[..., i, 2] * p[:, 2] + T[..., i, 3] for i in range(3)]
-    n_cam = [T[..., i, 0] * n[:, 0] + T[..., i, 1] * n[:, 1] + T[..., i, 2] * n[:, 2] for i in range(3)]
+    p_cam = part_point_columns(T_cam_parts, atlas.texel_part, p[:, 0], p[:, 1], p[:, 2])
+    zero = jnp.zeros((), p.dtype)  # a direction: the rotation alone
+    T_rot = T_cam_parts.at[:, :3, 3].set(zero)
+    n_cam = part_point_columns(T_rot, atlas.texel_part, n[:, 0], n[:, 1], n[:, 2])
     z = p_cam[2]
     safe_z = jnp.where(z > 1e-6, z, 1e-6)
     K = camera.K
@@ -179,9 +180,12 @@ def _observe_one(atlas, image, depth, camera, T_world_parts, params, config):
     h, w = depth.shape
     ui = jnp.clip(jnp.round(u).astype(jnp.int32), 0, w - 1)
     vi = jnp.clip(jnp.round(v).astype(jnp.int32), 0, h - 1)
-    gray = gaussian_blur(to_gray(image).astype(z.dtype)[..., None], config.blur_sigma)
-    value, inside = sample_bilinear(gray, u, v)
-    depth_at = depth[vi, ui]  # +inf off the object: such texels are hidden behind the silhouette edge
+    pixel = vi * w + ui
+    gray = gaussian_blur(to_gray(image).astype(z.dtype)[..., None], config.blur_sigma)[..., 0]
+    # Reads of the (H, W) maps at the texels through flat indices (`sample_bilinear_flat`, `take`): XLA:CPU's
+    # two-index gathers with these computed indices ran several times slower (README, "Texels read through flat indices").
+    value, inside = sample_bilinear_flat(gray, u, v)
+    depth_at = jnp.take(depth.reshape(-1), pixel, mode="clip")  # +inf off the object: such texels are hidden behind the silhouette edge
     visible = inside & (z > 1e-6) & jnp.isfinite(depth_at) & (z <= depth_at * (1 + config.depth_tolerance) + 1e-3)
     visible = visible & atlas.texel_live
     # |cos| of the viewing angle (two-sided: open meshes show their inside too).
@@ -189,8 +193,8 @@ def _observe_one(atlas, image, depth, camera, T_world_parts, params, config):
     cos = jnp.abs(n_cam[0] * p_cam[0] + n_cam[1] * p_cam[1] + n_cam[2] * p_cam[2]) / jnp.maximum(distance, 1e-9)
     side = 2 * config.edge_margin + 1
     interior = box_sum(jnp.isfinite(depth).astype(z.dtype)[..., None], config.edge_margin)[..., 0] >= side * side - 0.5
-    reliable = visible & (cos >= params.min_cos) & interior[vi, ui]
-    return TexelObservation(value[:, 0], visible, reliable, vi * w + ui)
+    reliable = visible & (cos >= params.min_cos) & jnp.take(interior.reshape(-1), pixel, mode="clip")
+    return TexelObservation(value, visible, reliable, pixel)
 
 
 def observe_texels(
