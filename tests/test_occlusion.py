@@ -330,7 +330,9 @@ def test_texels_of_a_two_part_chain_are_read_where_their_own_part_projects_them(
     model = chain_model([-1, 0], [(0.0, 0.0, 1.0)], [(45.0, 0.0, 0.0)])
     camera = jt.make_camera(np.array([[300.0, 0, 80], [0, 300.0, 60], [0, 0, 1]]), 160, 120)
     T = np.eye(4, dtype=np.float32)
-    T[:3, 3] = (-40.0, 0.0, 600.0)
+    a = np.radians(75.0)  # turned about y: the ±z faces seen at 75° (|cos| 0.26 < min_cos: visible, not reliable)
+    T[:3, :3] = [[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]]
+    T[:3, 3] = (-10.0, 0.0, 600.0)
     theta = jnp.asarray([0.6], jnp.float32)
     rendered = Renderer(mesh, camera, model)(jnp.asarray(T), theta)
     rng = np.random.default_rng(0)
@@ -354,7 +356,23 @@ def test_texels_of_a_two_part_chain_are_read_where_their_own_part_projects_them(
     assert np.allclose(np.asarray(p)[:, 2], np.asarray(z), atol=1e-3)
     assert np.array_equal(np.asarray(obs.value[0]), np.asarray(value[:, 0]))
     assert np.array_equal(np.asarray(obs.pixel[0]), vi * 160 + ui)
+    n_cam = jnp.einsum("tij,tj->ti", T_cam[:, :3, :3], atlas.texel_normal)
+    depth = np.asarray(rendered.depth)
+    depth_at = depth[vi, ui]
+    inside = (np.asarray(u) >= 0) & (np.asarray(u) <= 159) & (np.asarray(w) >= 0) & (np.asarray(w) <= 119)
+    z_np = np.asarray(z)
+    want_visible = (inside & (z_np > 1e-6) & np.isfinite(depth_at) & (z_np <= depth_at * (1 + config.depth_tolerance) + 1e-3)
+                    & np.asarray(atlas.texel_live))
+    cos = np.abs(np.sum(np.asarray(n_cam) * np.asarray(p), -1)) / np.linalg.norm(np.asarray(p), axis=-1)
+    side = 2 * config.edge_margin + 1
+    interior = np.asarray(box_sum(jnp.isfinite(rendered.depth).astype(jnp.float32)[..., None], config.edge_margin))[..., 0]
+    want_reliable = want_visible & (cos >= float(params.min_cos)) & (interior >= side * side - 0.5)[vi, ui]
     visible = np.asarray(obs.visible[0])
+    assert np.mean(visible == want_visible) > 0.999  # a texel exactly at the depth bound may round either way
+    reliable = np.asarray(obs.reliable[0])
+    assert np.mean(reliable == want_reliable) > 0.999 and 0 < reliable.sum() < visible.sum()
+    grazing = want_visible & (cos < float(params.min_cos))
+    assert grazing.sum() > 100 and not np.any(reliable[grazing])
     # Both parts are seen, and the turned part's texels land on the rendered object where visible.
     for part in (0, 1):
         assert np.sum(visible & (np.asarray(atlas.texel_part) == part)) > 100

@@ -179,11 +179,13 @@ def part_points_world(model: KinematicModel, T_world_root: jax.Array, theta: jax
 
 def part_point_columns(T_parts: jax.Array, part: jax.Array, x: jax.Array, y: jax.Array, z: jax.Array):
     """Each point moved by its own part's transform, as coordinate columns: T_parts (P, 4, 4), part (N,) int and
-    x, y, z (N,) → (x', y', z'), each (N,). The arithmetic of `transform_point_columns(T_parts[part], x, y, z)`.
+    x, y, z (N,) → (x', y', z'), each (N,). The arithmetic of `transform_point_columns(T_parts[part], x, y, z)`
+    (`part` has the points' shape).
 
     Each entry of T_parts[part] is gathered on its own from a (P,) column: XLA:CPU wrote the whole (N, 4, 4)
     gather out, in a transposed layout, before the arithmetic read it (the human's 170 000 texels on 4 cameras:
-    44 MB a frame; README, "Per-part transforms gathered by entry"). One part: no gather."""
+    44 MB a frame; README, "Per-part transforms gathered by entry"). One part (P = 1): its transform for every
+    point, `part` is not read."""
     if T_parts.shape[0] == 1:
         return transform_point_columns(T_parts[0], x, y, z)
 

@@ -183,7 +183,8 @@ def _observe_one(atlas, image, depth, camera, T_world_parts, params, config):
     pixel = vi * w + ui
     gray = gaussian_blur(to_gray(image).astype(z.dtype)[..., None], config.blur_sigma)[..., 0]
     # Reads of the (H, W) maps at the texels through flat indices (`sample_bilinear_flat`, `take`): XLA:CPU's
-    # two-index gathers with these computed indices ran several times slower (README, "Texels read through flat indices").
+    # two-index gathers with these computed indices ran several times slower (README, "Per-part transforms gathered
+    # by entry, texels read through flat indices").
     value, inside = sample_bilinear_flat(gray, u, v)
     depth_at = jnp.take(depth.reshape(-1), pixel, mode="clip")  # +inf off the object: such texels are hidden behind the silhouette edge
     visible = inside & (z > 1e-6) & jnp.isfinite(depth_at) & (z <= depth_at * (1 + config.depth_tolerance) + 1e-3)
