@@ -266,3 +266,25 @@ def test_tile_overlap_never_misses_a_covered_pixel():
     needed = np.stack([inside[:, y0 : y0 + tile, x0 : x0 + tile].any((1, 2)) for x0, y0 in corners], 1)
     assert not (needed & ~hit).any()  # no covered tile is skipped
     assert hit.sum() < 1.1 * needed.sum() and hit.sum() < 0.5 * hit.size  # and few are tested in vain
+
+
+def test_a_closed_outward_mesh_hides_its_back_faces_and_culling_them_renders_the_same():
+    from jaxtrack.render import hides_its_back_faces
+
+    box = box_mesh((160, 70, 80))
+    v, f = np.asarray(box.vertices), np.asarray(box.faces)
+    assert hides_its_back_faces(box) and hides_its_back_faces(torus_mesh())
+    assert not hides_its_back_faces(make_mesh(v, f[:, ::-1]))  # closed but wound inward: culling would drop the front
+    assert not hides_its_back_faces(make_mesh(v, f[:-1]))  # a face missing: the inside shows through the hole
+    assert not hides_its_back_faces(_mixed_mesh())
+    for mesh, eye in ((torus_mesh(), [0, -250, -350]), (box, [120, -160, -300]), (box, [-40, 200, -260])):
+        cam, _, _ = _camera(eye)
+        T = jnp.eye(4)
+        outs = []
+        for cull in (False, True):
+            plan = plan_raster(face_extents(mesh, cam, T, cull_backfaces=cull), cull_backfaces=cull)
+            outs.append(render(mesh, cam, T, plan=plan))
+        plain, culled = outs
+        assert np.array_equal(np.asarray(plain.face_id), np.asarray(culled.face_id))
+        assert np.array_equal(np.asarray(plain.depth), np.asarray(culled.depth))
+        assert int(np.sum(np.asarray(plain.face_id) >= 0)) > 1000

@@ -83,6 +83,17 @@ def test_one_compilation_per_crop_class(tracked):
 
 
 @pytest.mark.xdist_group("small_tracker")
+def test_the_renders_of_a_closed_mesh_skip_its_back_faces(sequence, tracker, tracked, monkeypatch):
+    assert tracker.cull_backfaces and tracker.plan.cull_backfaces
+    assert tracker.crop_plan is None or tracker.crop_plan.cull_backfaces
+    monkeypatch.setenv("JAXTRACK_CULL_BACKFACES", "0")
+    assert not Tracker(sequence["mesh"], sequence["camera"]).cull_backfaces
+    v, f = np.asarray(sequence["mesh"].vertices), np.asarray(sequence["mesh"].faces)
+    monkeypatch.delenv("JAXTRACK_CULL_BACKFACES")
+    assert not Tracker(make_mesh(v, f[:-1]), sequence["camera"]).cull_backfaces  # open: its inside may show
+
+
+@pytest.mark.xdist_group("small_tracker")
 def test_object_leaving_the_image_is_a_status_not_a_crash(sequence, tracker, tracked):
     *_, state = tracked
     # Teleport the state's pose far to the side: the object is no longer in the image.

@@ -4,6 +4,8 @@ from ..image import nearest_seed_distance as nearest_seed_distance  # Φ0 lives 
 from ..image import silhouette_sdf as silhouette_sdf
 from ._mesh import Mesh as Mesh
 from ._mesh import box_mesh as box_mesh
+from ._mesh import hides_its_back_faces as hides_its_back_faces
+from ._mesh import is_closed as is_closed
 from ._mesh import make_mesh as make_mesh
 from ._mesh import torus_mesh as torus_mesh
 from ._raster import PATCH_SIZES as PATCH_SIZES

@@ -68,6 +68,30 @@ def make_mesh(
     )
 
 
+def is_closed(faces: np.ndarray) -> bool:
+    """Whether a triangle mesh is closed and consistently oriented: every directed edge (a, b) appears
+    once and its reverse (b, a) once (then back faces never show, and culling them is exact)."""
+    faces = np.asarray(faces, np.int64)
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    n = int(faces.max()) + 1
+    code = edges[:, 0] * n + edges[:, 1]
+    reverse = edges[:, 1] * n + edges[:, 0]
+    unique, counts = np.unique(code, return_counts=True)
+    return bool(np.all(counts == 1) and np.all(np.isin(reverse, unique)))
+
+
+def hides_its_back_faces(mesh: Mesh) -> bool:
+    """Whether the rasteriser may skip `mesh`'s back faces exactly (`RasterPlan.cull_backfaces`): closed and
+    consistently oriented (`is_closed`) with its faces turned outward (positive signed volume; an inward-wound
+    mesh would show exactly the faces culling drops)."""
+    v = np.asarray(mesh.vertices, np.float64)
+    f = np.asarray(mesh.faces, np.int64)
+    if not len(f) or not is_closed(f):
+        return False
+    volume = np.sum(np.einsum("ij,ij->i", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]]))) / 6.0
+    return bool(volume > 0)
+
+
 def box_mesh(size: tuple[float, float, float] = (100.0, 60.0, 40.0), dtype: DTypeLike = jnp.float32) -> Mesh:
     """An axis-aligned box centred at the origin (12 triangles, outward CCW)."""
     sx, sy, sz = (s / 2 for s in size)

@@ -55,7 +55,7 @@ from ..cues.sift import SiftConfig, sift_params
 from ..geometry import Camera, KinematicModel, crop_camera, rigid_model, stack_cameras
 from ..geometry._validate import checked_rotation
 from ..modality import Pose, StartContext
-from ..render import Mesh, RasterPlan, render, replan
+from ..render import Mesh, RasterPlan, hides_its_back_faces, render, replan
 from ..solve import CueWeights
 from ._keyframes import KeyframeModel, _rotation_deg
 from ._recovery import recover_pose
@@ -367,6 +367,9 @@ class Tracker:
             mocap human, 4-camera steps ~7 % faster); False (default; $JAXTRACK_RECTANGULAR_TEXELS=1 sets it True):
             the square grids, whose finer texels across slivers tracked the occluded and noisy sequences better
             (README, "Texels along elongated faces"). Read at the first `start`.
+        cull_backfaces: the rasteriser skips back faces (`RasterPlan.cull_backfaces`: half the candidate pixels,
+            the same renders) where the mesh hides them (`jaxtrack.render.hides_its_back_faces`: closed, consistently
+            oriented, outward); $JAXTRACK_CULL_BACKFACES=0 turns it off. Read when the first raster plan is made.
         precompile_first_step: compile the first step's programs in a background thread from `start` on, beside the
             start's own (True; $JAXTRACK_PRECOMPILE=0 sets it False); only with the on-disk program cache (kept programs).
         crop_follows_motion: the next step's windows hold the box at t and the box moved on by the last step's motion
@@ -430,6 +433,7 @@ class Tracker:
         # them, so the device works while the host detects ($JAXTRACK_OVERLAP_HOST=0: one program, host first).
         self.overlap_host: bool | None = False if os.environ.get("JAXTRACK_OVERLAP_HOST", "1") == "0" else None
         self.rectangular_texels = os.environ.get("JAXTRACK_RECTANGULAR_TEXELS", "0") == "1"
+        self.cull_backfaces = os.environ.get("JAXTRACK_CULL_BACKFACES", "1") != "0" and hides_its_back_faces(self.mesh)
         self.keyframes: KeyframeModel | None = None  # SIFT keyframes for the re-detection (`RecoveryConfig.keyframes`)
         if joint_limits is not None or pose_prior is not None:  # checked now, not at the first frame
             default_params(self.model, (64, 64), self.dtype, joint_limits=joint_limits, pose_prior=pose_prior)
@@ -510,15 +514,16 @@ class Tracker:
         turn toward the camera) times `_window_growth` (the object growing inside the window); faces that
         shrink spill into the larger classes, so one plan serves every distance and the step compiles once.
         """
-        self.plan = replan(self.plan, self.mesh, self._host_cameras(), T, theta, self.model, self.replans)
+        cull = self.plan.cull_backfaces if self.plan is not None else self.cull_backfaces
+        self.plan = replan(self.plan, self.mesh, self._host_cameras(), T, theta, self.model, self.replans, cull)
         if self.config.working_shape is not None and self.config.uses_crop():
             offsets, shape, scales = self.windows(T, theta) if windows is None else windows
             if offsets is not None:
                 cams = crop_camera(self._host_cameras(), np.asarray(offsets), shape, np.asarray(scales))
                 plan = self.crop_plan
                 for T_k, theta_k in ((T, theta),) + tuple(poses):
-                    plan = replan(plan, self.mesh, cams, T_k, theta_k, self.model, self.replans)
-                    plan = replan(plan, self.mesh, cams, T_k, theta_k, self.model, 0,
+                    plan = replan(plan, self.mesh, cams, T_k, theta_k, self.model, self.replans, cull)
+                    plan = replan(plan, self.mesh, cams, T_k, theta_k, self.model, 0, cull,
                                   extent_scale=np.sqrt(2.0) * self._window_growth(T_k, theta_k), base_margin=1.0)
                 self.crop_plan = plan
         self.replans += 1

@@ -39,7 +39,7 @@ import numpy as np
 
 from ..._device import to_device
 from ...geometry import Camera, se3_inverse, transform_points
-from ...render import PATCH_SIZES, Mesh, RasterPlan, RenderOutput, plan_raster, render
+from ...render import PATCH_SIZES, Mesh, RasterPlan, RenderOutput, is_closed, plan_raster, render
 
 # Bump when the build changes what a cached file holds.
 _FORMAT_VERSION = 1
@@ -413,18 +413,6 @@ def _tight_plan(extents: np.ndarray, cull: bool) -> RasterPlan:
     caps = [int(np.max(np.sum(cls == k, axis=1))) for k in range(len(sizes))]
     kept = [(int(s), c) for s, c in zip(sizes, caps) if c > 0] or [(int(sizes[0]), 1)]
     return RasterPlan(patch_sizes=tuple(s for s, _ in kept), capacities=tuple(c for _, c in kept), cull_backfaces=cull)
-
-
-def is_closed(faces: np.ndarray) -> bool:
-    """Whether a triangle mesh is closed and consistently oriented: every directed edge (a, b) appears
-    once and its reverse (b, a) once (then back faces never show, and culling them is exact)."""
-    faces = np.asarray(faces, np.int64)
-    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    n = int(faces.max()) + 1
-    code = edges[:, 0] * n + edges[:, 1]
-    reverse = edges[:, 1] * n + edges[:, 0]
-    unique, counts = np.unique(code, return_counts=True)
-    return bool(np.all(counts == 1) and np.all(np.isin(reverse, unique)))
 
 
 def build_view_model(
