@@ -277,6 +277,10 @@ def test_a_closed_outward_mesh_hides_its_back_faces_and_culling_them_renders_the
     assert not hides_its_back_faces(make_mesh(v, f[:, ::-1]))  # closed but wound inward: culling would drop the front
     assert not hides_its_back_faces(make_mesh(v, f[:-1]))  # a face missing: the inside shows through the hole
     assert not hides_its_back_faces(_mixed_mesh())
+    small = np.asarray(box_mesh((20, 20, 20)).vertices) + [300.0, 0.0, 0.0]
+    pieces = lambda f_small: make_mesh(np.concatenate([v, small]), np.concatenate([f, f_small + len(v)]))
+    assert hides_its_back_faces(pieces(f))  # two closed pieces, both outward (a body's capsules)
+    assert not hides_its_back_faces(pieces(f[:, ::-1]))  # the small piece inward: the total volume is still > 0
     for mesh, eye in ((torus_mesh(), [0, -250, -350]), (box, [120, -160, -300]), (box, [-40, 200, -260])):
         cam, _, _ = _camera(eye)
         T = jnp.eye(4)

@@ -70,8 +70,10 @@ def make_mesh(
 
 def is_closed(faces: np.ndarray) -> bool:
     """Whether a triangle mesh is closed and consistently oriented: every directed edge (a, b) appears
-    once and its reverse (b, a) once (then back faces never show, and culling them is exact)."""
+    once and its reverse (b, a) once (then back faces never show, and culling them is exact). No faces: False."""
     faces = np.asarray(faces, np.int64)
+    if not len(faces):
+        return False
     edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
     n = int(faces.max()) + 1
     code = edges[:, 0] * n + edges[:, 1]
@@ -81,15 +83,24 @@ def is_closed(faces: np.ndarray) -> bool:
 
 
 def hides_its_back_faces(mesh: Mesh) -> bool:
-    """Whether the rasteriser may skip `mesh`'s back faces exactly (`RasterPlan.cull_backfaces`): closed and
-    consistently oriented (`is_closed`) with its faces turned outward (positive signed volume; an inward-wound
-    mesh would show exactly the faces culling drops)."""
+    """Whether the rasteriser may skip `mesh`'s back faces (`RasterPlan.cull_backfaces`): closed and consistently
+    oriented (`is_closed`), and every connected piece (a capsule of a body, a part of an assembly) turned outward,
+    a positive signed volume each (an inward-wound piece would show exactly the faces culling drops). Seen from
+    outside every piece, a back face is then always behind a front face of its own piece."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
     v = np.asarray(mesh.vertices, np.float64)
     f = np.asarray(mesh.faces, np.int64)
-    if not len(f) or not is_closed(f):
+    if not is_closed(f):
         return False
-    volume = np.sum(np.einsum("ij,ij->i", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]]))) / 6.0
-    return bool(volume > 0)
+    n = len(v)
+    rows = np.concatenate([f[:, 0], f[:, 1]])
+    cols = np.concatenate([f[:, 1], f[:, 2]])
+    _, label = connected_components(coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n)), directed=False)
+    volume = np.einsum("ij,ij->i", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]])) / 6.0  # per face, about the origin
+    piece_volume = np.bincount(label[f[:, 0]], weights=volume)
+    return bool(np.all(piece_volume[np.unique(label[f[:, 0]])] > 0))
 
 
 def box_mesh(size: tuple[float, float, float] = (100.0, 60.0, 40.0), dtype: DTypeLike = jnp.float32) -> Mesh:

@@ -369,7 +369,8 @@ class Tracker:
             (README, "Texels along elongated faces"). Read at the first `start`.
         cull_backfaces: the rasteriser skips back faces (`RasterPlan.cull_backfaces`: half the candidate pixels,
             the same renders) where the mesh hides them (`jaxtrack.render.hides_its_back_faces`: closed, consistently
-            oriented, outward); $JAXTRACK_CULL_BACKFACES=0 turns it off. Read when the first raster plan is made.
+            oriented, every piece outward; $JAXTRACK_CULL_BACKFACES=0, read here, turns it off). Read when the first
+            raster plan is made; set True by hand for a mesh that fails the check, renders may miss faces.
         precompile_first_step: compile the first step's programs in a background thread from `start` on, beside the
             start's own (True; $JAXTRACK_PRECOMPILE=0 sets it False); only with the on-disk program cache (kept programs).
         crop_follows_motion: the next step's windows hold the box at t and the box moved on by the last step's motion

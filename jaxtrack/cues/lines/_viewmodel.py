@@ -39,7 +39,7 @@ import numpy as np
 
 from ..._device import to_device
 from ...geometry import Camera, se3_inverse, transform_points
-from ...render import PATCH_SIZES, Mesh, RasterPlan, RenderOutput, is_closed, plan_raster, render
+from ...render import PATCH_SIZES, Mesh, RasterPlan, RenderOutput, hides_its_back_faces, plan_raster, render
 
 # Bump when the build changes what a cached file holds.
 _FORMAT_VERSION = 1
@@ -438,7 +438,7 @@ def build_view_model(
         distance_factor: camera distance in bounding radii (far: nearly orthographic views).
         batch_size: views per vmapped call (memory ∝ batch_size · image_size²).
         cull_backfaces: skip back faces (exact for closed meshes, about twice as fast); None: when
-            the mesh is closed and consistently oriented (`is_closed`).
+            the mesh hides its back faces (`jaxtrack.render.hides_its_back_faces`).
         sigma: smoothing (px) of the silhouette for the normals.
         progress: print a line per batch.
 
@@ -461,7 +461,7 @@ def build_view_model(
     if not radius > 0:
         raise ValueError("build_view_model: the mesh has no extent")
     if cull_backfaces is None:
-        cull_backfaces = is_closed(faces)
+        cull_backfaces = hides_its_back_faces(mesh)
     directions, _ = icosphere(subdivisions)
     K, T = _view_cameras(center, radius, directions, image_size, distance_factor)
     plan = _tight_plan(_face_extents_all(vertices, faces, K, T, image_size, cull_backfaces), cull_backfaces)
