@@ -43,6 +43,7 @@ import threading
 import time
 import types
 import warnings
+import weakref
 
 import equinox as eqx
 import jax
@@ -270,6 +271,22 @@ def _split(args, kwargs):
     return treedef, is_dynamic, dynamic, static, tuple((x.shape, _canonical(x.dtype, x64)) for x in dynamic)
 
 
+# The entries whose programs have run in this process (`optimised_hlo_texts`); weak: a dropped entry leaves the set.
+_RAN: weakref.WeakSet = weakref.WeakSet()
+
+
+def optimised_hlo_texts() -> list[str]:
+    """The optimised HLO text (XLA's `as_text()`, with its table of source lines) of every kept program that has run
+    in this process. For profiling: the JAX profiler names the kernels of a program (its fusions), this text says
+    which lines of Python made each (`jaxtrack.bench.profile_kernels`). Each lowering finds its executable in jit's
+    or the on-disk compile cache."""
+    texts = []
+    for entry in list(_RAN):
+        structs = [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in entry.exported.in_avals]
+        texts.append(entry.call.lower(*structs).compile().as_text())
+    return texts
+
+
 class _Entry:
     """One signature's program: the jitted call of the exported module and how to rebuild the output tree."""
 
@@ -298,6 +315,7 @@ class _Entry:
     def __call__(self, dynamic):
         out = iter(self.call(*dynamic))
         self.compiled = True
+        _RAN.add(self)
         static = iter(self.out_static)
         return jax.tree_util.tree_unflatten(self.out_treedef, [next(out) if d else next(static) for d in self.out_is_dynamic])
 

@@ -287,3 +287,16 @@ def test_levelset_noise_scores_the_pixels_the_motion_moved_and_reads_its_setting
     for bad in ("1", "3:1", "1:0", "a:b"):
         with pytest.raises(SystemExit, match="--settings|SIGMA"):
             ln.parse_settings(bad)
+
+
+def test_profile_step_refuses_too_few_frames_and_tables_by_share(capsys):
+    """experiments/profile_step.py: fewer than 3 frames stop with a message naming --frames (before any sequence is
+    rendered); its tables list the largest first with their share of the total."""
+    module = _load("profile_step")
+    with pytest.raises(SystemExit):
+        module.main(["--frames", "2"])
+    assert "--frames must be ≥ 3" in capsys.readouterr().err
+    import collections
+
+    rows = module.table(collections.Counter({"a.py:f:1": 3e6, "b.py:g:2": 9e6}), 3, 5, 12e6)
+    assert rows[2] == "| 3.00 | 75.0 % | `b.py:g:2` |" and rows[3] == "| 1.00 | 25.0 % | `a.py:f:1` |"

@@ -603,3 +603,18 @@ def test_a_failed_optimising_child_is_reported_and_releases_its_locks(tmp_path):
     assert not _tiered._lock_held(program) and _tiered._take_lock(program)
     _tiered._release(program, os.getpid())
     assert not _tiered.lock_path(program).exists()
+
+
+def test_the_optimised_text_of_a_kept_program_that_ran_names_its_source_lines(folder):
+    """`optimised_hlo_texts`: XLA's optimised HLO of each kept program that has run, with the stack frames that
+    `jaxtrack.bench.profile_kernels` maps its kernels through."""
+    from jaxtrack.bench import instruction_frames
+
+    m, x = Scaled(jnp.arange(3.0), 2), jnp.array([1.0, -2.0, 0.5])
+    program = persistent_jit(model)
+    jax.block_until_ready(program(m, x, factor=3.0)[1])
+    texts = [t for t in _exported.optimised_hlo_texts() if "HloModule" in t]
+    assert texts
+    line = model.__code__.co_firstlineno + 3  # y = factor * (m.weights * x) ** m.power
+    frames = [f for t in texts for stack in instruction_frames(t).values() for f in stack]
+    assert any(f.function == "model" and f.line == line and f.file.endswith("test_exported.py") for f in frames)

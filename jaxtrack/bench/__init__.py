@@ -34,6 +34,11 @@ from ._jobs import BenchSettings as BenchSettings
 from ._jobs import auc as auc
 from ._jobs import jobs_for as jobs_for
 from ._jobs import run_job as run_job
+from ._profile import KernelProfile as KernelProfile
+from ._profile import SourceFrame as SourceFrame
+from ._profile import innermost_in as innermost_in
+from ._profile import instruction_frames as instruction_frames
+from ._profile import profile_kernels as profile_kernels
 
 
 @dataclasses.dataclass
