@@ -272,18 +272,28 @@ def _split(args, kwargs):
 
 
 # The entries whose programs have run in this process (`optimised_hlo_texts`); weak: a dropped entry leaves the set.
+# Calls add from several threads (the step's programs compile and run beside each other): under a lock.
 _RAN: weakref.WeakSet = weakref.WeakSet()
+_RAN_LOCK = threading.Lock()
 
 
 def optimised_hlo_texts() -> list[str]:
     """The optimised HLO text (XLA's `as_text()`, with its table of source lines) of every kept program that has run
     in this process. For profiling: the JAX profiler names the kernels of a program (its fusions), this text says
-    which lines of Python made each (`jaxtrack.bench.profile_kernels`). Each lowering finds its executable in jit's
-    or the on-disk compile cache."""
+    which lines of Python made each (`jaxtrack.bench.profile_kernels`). Each program is lowered again for its
+    abstract arguments: in a process that has just run it, jit's cache (or the on-disk compile cache) holds the
+    executable; otherwise this compiles it again (minutes for the tracker's step). A program that cannot be lowered
+    so is left out."""
+    with _RAN_LOCK:
+        entries = list(_RAN)
     texts = []
-    for entry in list(_RAN):
+    for entry in entries:
         structs = [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in entry.exported.in_avals]
-        texts.append(entry.call.lower(*structs).compile().as_text())
+        try:
+            texts.append(entry.call.lower(*structs).compile().as_text())
+        except Exception as error:  # noqa: BLE001  (profiling only: its kernels stay unattributed)
+            warnings.warn(f"jaxtrack: no optimised text of a kept program ({type(error).__name__}: {error})",
+                          RuntimeWarning, stacklevel=2)
     return texts
 
 
@@ -315,7 +325,8 @@ class _Entry:
     def __call__(self, dynamic):
         out = iter(self.call(*dynamic))
         self.compiled = True
-        _RAN.add(self)
+        with _RAN_LOCK:
+            _RAN.add(self)
         static = iter(self.out_static)
         return jax.tree_util.tree_unflatten(self.out_treedef, [next(out) if d else next(static) for d in self.out_is_dynamic])
 

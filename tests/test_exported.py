@@ -613,8 +613,8 @@ def test_the_optimised_text_of_a_kept_program_that_ran_names_its_source_lines(fo
     m, x = Scaled(jnp.arange(3.0), 2), jnp.array([1.0, -2.0, 0.5])
     program = persistent_jit(model)
     jax.block_until_ready(program(m, x, factor=3.0)[1])
-    texts = [t for t in _exported.optimised_hlo_texts() if "HloModule" in t]
-    assert texts
+    texts = _exported.optimised_hlo_texts()
+    assert texts and all(t.startswith("HloModule") for t in texts)
     line = model.__code__.co_firstlineno + 3  # y = factor * (m.weights * x) ** m.power
     frames = [f for t in texts for stack in instruction_frames(t).values() for f in stack]
     assert any(f.function == "model" and f.line == line and f.file.endswith("test_exported.py") for f in frames)

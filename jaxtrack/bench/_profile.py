@@ -18,6 +18,8 @@ import re
 import tempfile
 
 _SECTIONS = ("FileNames", "FunctionNames", "FileLocations", "StackFrames")
+# The jaxtrack package folder: its files are "jaxtrack's lines".
+PACKAGE = pathlib.Path(__file__).resolve().parents[1]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -28,11 +30,15 @@ class SourceFrame:
     function: str
     line: int
 
-    def short(self, package: str = "jaxtrack", line: bool = True) -> str:
-        """`path/inside/package.py:function:line` (without `:line` where `line` is False)."""
-        marker = f"/{package}/"
-        path = self.file.split(marker, 1)[-1] if marker in self.file else pathlib.Path(self.file).name
-        return f"{path}:{self.function}:{self.line}" if line else f"{path}:{self.function}"
+    def short(self, line: bool = True) -> str:
+        """`path/inside/jaxtrack.py:function:line` for the package's files (the file's name for others); without
+        `:line` where `line` is False."""
+        path = pathlib.Path(self.file)
+        try:
+            name = path.resolve().relative_to(PACKAGE).as_posix()
+        except (ValueError, OSError):
+            name = path.name
+        return f"{name}:{self.function}:{self.line}" if line else f"{name}:{self.function}"
 
 
 def _section(text: str, name: str) -> str:
@@ -45,17 +51,23 @@ def _section(text: str, name: str) -> str:
     return text[start:min(ends)] if ends else text[start:]
 
 
+# Instructions whose trace events span the kernels of the computations they run (a loop, a branch, a call): counting
+# them as well would count their bodies' time twice.
+CONTROL_FLOW = ("while", "conditional", "call", "async-start", "async-done", "async-update")
+
+
 def instruction_frames(hlo_text: str) -> dict[str, tuple[SourceFrame, ...]]:
     """HLO instruction name → its Python stack, innermost frame first, from an optimised program's `as_text()`.
 
     The text ends with four tables (file names, function names, file locations, stack frames: each frame names its
-    location and its caller's frame) and each instruction's metadata names its innermost frame (`stack_frame_id`).
-    Instructions without one are left out."""
-    ids = lambda body: dict(re.findall(r'^(\d+) "([^"]*)"', body, re.MULTILINE))
+    location and its caller's frame, printed as the caller's id + 1, so 1 means none) and each instruction's metadata
+    names its innermost frame (`stack_frame_id`). Instructions without one are left out. XLA keeps the frames that
+    tracing saw inside the innermost jitted or looped function: often one or two."""
+    ids = lambda body: dict(re.findall(r'^(\d+) "(.*)"$', body, re.MULTILINE))
     files, functions = ids(_section(hlo_text, "FileNames")), ids(_section(hlo_text, "FunctionNames"))
     locations = {k: (f, g, int(line)) for k, f, g, line in re.findall(
         r"^(\d+) \{file_name_id=(\d+) function_name_id=(\d+) line=(\d+)", _section(hlo_text, "FileLocations"), re.MULTILINE)}
-    frames = {k: (loc, parent) for k, loc, parent in re.findall(
+    frames = {k: (loc, str(int(parent) - 1)) for k, loc, parent in re.findall(
         r"^(\d+) \{file_location_id=(\d+) parent_frame_id=(\d+)", _section(hlo_text, "StackFrames"), re.MULTILINE)}
 
     @functools.cache
@@ -64,12 +76,21 @@ def instruction_frames(hlo_text: str) -> dict[str, tuple[SourceFrame, ...]]:
         while frame_id in frames and frame_id not in seen:
             seen.add(frame_id)
             location, frame_id = frames[frame_id]
+            if location not in locations:
+                break
             f, g, line = locations[location]
             out.append(SourceFrame(files.get(f, "?"), functions.get(g, "?"), line))
         return tuple(out)
 
     pairs = re.findall(r"^\s*(?:ROOT )?%?([\w.\-]+) = [^\n]*?stack_frame_id=(\d+)", hlo_text, re.MULTILINE)
     return {name: stack(frame_id) for name, frame_id in pairs}
+
+
+def control_flow_instructions(hlo_text: str) -> set[str]:
+    """Names of the instructions in `hlo_text` whose opcode is in `CONTROL_FLOW` (the opcode follows the shape:
+    `%name = SHAPE while(...)`; operands are written `%x`, so a space before the opcode tells them apart)."""
+    opcodes = "|".join(re.escape(op) for op in CONTROL_FLOW)
+    return set(re.findall(r"^\s*(?:ROOT )?%?([\w.\-]+) = [^\n]*? (?:" + opcodes + r")\(", hlo_text, re.MULTILINE))
 
 
 @dataclasses.dataclass
@@ -79,6 +100,7 @@ class KernelProfile:
     Attributes:
         ns: {(program id, HLO instruction): total nanoseconds over the profiled calls}.
         count: {(program id, HLO instruction): kernel launches}.
+        The events of loops, branches and calls themselves (`CONTROL_FLOW`) are left out: their bodies' kernels count.
         frames: {(program id, HLO instruction): Python stack, innermost first} where a program's text was given.
     """
 
@@ -105,13 +127,24 @@ class KernelProfile:
         return out
 
 
-def innermost_in(package_part: str, exclude: tuple[str, ...] = ("/_exported.py",)):
-    """A `KernelProfile.by_line` chooser: the innermost frame whose file path contains `package_part` (for example
-    "/jaxtrack/" for the package's own line, "/jaxtrack/track/_step.py" for the step's stage), skipping `exclude`."""
+def innermost_in(where: str | tuple[str, ...] | None = None, exclude: tuple[str, ...] = ("_exported.py",)):
+    """A `KernelProfile.by_line` chooser: the innermost frame in the jaxtrack package (`where` None) or whose file
+    path contains `where` (or one of them: e.g. ("track/_step.py", "modality/_loop.py") for the step's own lines,
+    which stage called the kernel), skipping files whose path contains one of `exclude` (the kept programs'
+    wrapper)."""
+
+    def inside(file: str) -> bool:
+        if where is not None:
+            return any(w in file for w in ((where,) if isinstance(where, str) else where))
+        try:
+            pathlib.Path(file).resolve().relative_to(PACKAGE)
+            return True
+        except (ValueError, OSError):
+            return False
 
     def choose(stack):
         for frame in stack:
-            if package_part in frame.file and not any(x in frame.file for x in exclude):
+            if inside(frame.file) and not any(x in frame.file for x in exclude):
                 return frame
         return None
 
@@ -138,18 +171,21 @@ def read_trace(trace_dir: pathlib.Path) -> tuple[collections.Counter, collection
     return ns, count
 
 
-def _match_programs(ns: collections.Counter, texts: list[str]) -> dict:
-    """Program id → the instruction frames of the text that holds the most of its instructions (the trace names
-    programs by id, the texts do not; instruction names repeat between programs, so the whole set decides)."""
-    parsed = [instruction_frames(t) for t in texts]
+def _match_programs(ns: collections.Counter, texts: list[str], share: float = 0.9) -> dict:
+    """Program id → (instruction frames, control-flow instructions) of the text that holds the most of its
+    instructions, where that text holds at least `share` of them (the trace names programs by id, the texts do not;
+    instruction names such as `copy.6` repeat between programs, so the whole set decides). Programs without such a
+    text are left out (their kernels stay unattributed)."""
+    defined = [set(re.findall(r"^\s*(?:ROOT )?%?([\w.\-]+) = ", t, re.MULTILINE)) for t in texts]
     ops = collections.defaultdict(set)
     for program, op in ns:
         ops[program].add(op)
     out = {}
     for program, names in ops.items():
-        scores = [len(names & p.keys()) for p in parsed]
-        if scores and max(scores) > 0:
-            out[program] = parsed[scores.index(max(scores))]
+        scores = [len(names & d) for d in defined]
+        if scores and max(scores) >= share * len(names):
+            text = texts[scores.index(max(scores))]
+            out[program] = (instruction_frames(text), control_flow_instructions(text))
     return out
 
 
@@ -160,6 +196,7 @@ def profile_kernels(run, texts=None, trace_dir: pathlib.Path | None = None) -> K
         run: a callable that runs the programs to profile and waits for their results.
         texts: the optimised HLO texts of the programs (default: `jaxtrack._exported.optimised_hlo_texts()` after the
             run, every kept program that has run; pass `[jax.jit(f).lower(...).compile().as_text()]` for others).
+            Kernels of a program without its text count, unattributed.
         trace_dir: where the trace goes (default: a temporary folder, removed after).
     """
     import jax
@@ -179,5 +216,10 @@ def profile_kernels(run, texts=None, trace_dir: pathlib.Path | None = None) -> K
 
         texts = optimised_hlo_texts()
     programs = _match_programs(ns, list(texts))
-    frames = {key: programs.get(key[0], {}).get(key[1], ()) for key in ns}
+    # A loop's, branch's or call's own event spans its body's kernels, which have events of their own: left out.
+    loops = lambda key: (key[1] in programs[key[0]][1] if key[0] in programs
+                         else key[1].split(".")[0] in CONTROL_FLOW)
+    ns = collections.Counter({k: v for k, v in ns.items() if not loops(k)})
+    count = collections.Counter({k: v for k, v in count.items() if k in ns})
+    frames = {key: programs[key[0]][0].get(key[1], ()) if key[0] in programs else () for key in ns}
     return KernelProfile(ns, count, frames)
