@@ -61,8 +61,7 @@ def instruction_frames(hlo_text: str) -> dict[str, tuple[SourceFrame, ...]]:
 
     The text ends with four tables (file names, function names, file locations, stack frames: each frame names its
     location and its caller's frame, printed as the caller's id + 1, so 1 means none) and each instruction's metadata
-    names its innermost frame (`stack_frame_id`). Instructions without one are left out. XLA keeps the frames that
-    tracing saw inside the innermost jitted or looped function: often one or two."""
+    names its innermost frame (`stack_frame_id`). Instructions without one are left out."""
     ids = lambda body: dict(re.findall(r'^(\d+) "(.*)"$', body, re.MULTILINE))
     files, functions = ids(_section(hlo_text, "FileNames")), ids(_section(hlo_text, "FunctionNames"))
     locations = {k: (f, g, int(line)) for k, f, g, line in re.findall(
@@ -95,12 +94,12 @@ def control_flow_instructions(hlo_text: str) -> set[str]:
 
 @dataclasses.dataclass
 class KernelProfile:
-    """Kernel time of the profiled calls, by program and instruction.
+    """Kernel time of the profiled calls, by program and instruction. The events of loops, branches and calls
+    themselves (`CONTROL_FLOW`) are left out: their bodies' kernels count.
 
     Attributes:
         ns: {(program id, HLO instruction): total nanoseconds over the profiled calls}.
         count: {(program id, HLO instruction): kernel launches}.
-        The events of loops, branches and calls themselves (`CONTROL_FLOW`) are left out: their bodies' kernels count.
         frames: {(program id, HLO instruction): Python stack, innermost first} where a program's text was given.
     """
 
