@@ -308,6 +308,7 @@ class _Entry:
         self.call = jax.jit(exported.call, in_shardings=placement, out_shardings=placement, **_jit_options(options))
         self.out_treedef, self.out_is_dynamic, self.out_static = out_treedef, out_is_dynamic, out_static
         self.compiled = False
+        self.ran = False  # in `_RAN` (its program has run: `optimised_hlo_texts`)
         self.optimise = None  # a first tier's `jaxtrack._tiered.Request`, until its first call
 
     def compile(self, dynamic) -> None:
@@ -325,8 +326,10 @@ class _Entry:
     def __call__(self, dynamic):
         out = iter(self.call(*dynamic))
         self.compiled = True
-        with _RAN_LOCK:
-            _RAN.add(self)
+        if not self.ran:  # once per entry, not at every call
+            with _RAN_LOCK:
+                _RAN.add(self)
+            self.ran = True
         static = iter(self.out_static)
         return jax.tree_util.tree_unflatten(self.out_treedef, [next(out) if d else next(static) for d in self.out_is_dynamic])
 

@@ -179,12 +179,15 @@ def _match_programs(ns: collections.Counter, texts: list[str], share: float = 0.
     ops = collections.defaultdict(set)
     for program, op in ns:
         ops[program].add(op)
+    parsed = {}  # text index → its frames and control-flow instructions, parsed once whatever matches it
     out = {}
     for program, names in ops.items():
         scores = [len(names & d) for d in defined]
         if scores and max(scores) >= share * len(names):
-            text = texts[scores.index(max(scores))]
-            out[program] = (instruction_frames(text), control_flow_instructions(text))
+            best = scores.index(max(scores))
+            if best not in parsed:
+                parsed[best] = (instruction_frames(texts[best]), control_flow_instructions(texts[best]))
+            out[program] = parsed[best]
     return out
 
 
