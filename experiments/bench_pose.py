@@ -11,7 +11,9 @@ Joint count: compile time (trace + lower + XLA compile of `jit(vmap(solve_pose))
 points, float32) and batched throughput for articulated chains with J = 0, 3, 12, 24 joints. The same
 rows are measured with the normal-equation builder of commit 33dcef2 (`legacy_plane_normal_equations`
 below, D(D+1)/2 separately traced column products and a Python loop over joints) swapped into the
-solver, so the table shows before and after in one run on one machine.
+solver, and with the library's rows summed at every Gauss-Newton iterate (`plane_normal_equations`, the solver
+before its per-part moments, `jaxtrack.solve._moments`), so the table shows before and after in one run on one
+machine.
 
     python experiments/bench_pose.py            # full table, writes experiments/results/bench_pose.md
     python experiments/bench_pose.py --quick    # a small smoke run (used by the tests)
@@ -105,17 +107,19 @@ def run(point_counts, noises, trials, batch, seed=0):
         out = batched(corr, T0)
         jax.block_until_ready(out)
         new_program = batched.lower(corr, T0).compile()
-        with normal_equation_builder("legacy"):
-            legacy_program = jax.jit(jax.vmap(lambda c, T: jt.solve_pose(model, c, T))).lower(corr, T0).compile()
-        # Alternate the two programs and keep the fastest call of each (load from other processes).
-        best = {"new": np.inf, "legacy": np.inf}
+        programs = {"new": new_program}
+        for name in ("rows", "legacy"):
+            with normal_equation_builder(name):
+                programs[name] = jax.jit(jax.vmap(lambda c, T: jt.solve_pose(model, c, T))).lower(corr, T0).compile()
+        # Alternate the programs and keep the fastest call of each (load from other processes).
+        best = {name: np.inf for name in programs}
         for _ in range(3):
-            for name, program in (("new", new_program), ("legacy", legacy_program)):
+            for name, program in programs.items():
                 call = lambda f=program, c=corr, T=T0: jax.block_until_ready(f(c, T))
                 best[name] = min(best[name], best_of(call, 3))
         ok = float(np.mean(np.asarray(out.status) == 0))
         steps = float(np.mean(np.asarray(out.num_steps)))
-        throughput.append((n, batch, batch / best["new"], steps, ok, batch / best["legacy"]))
+        throughput.append((n, batch, batch / best["new"], steps, ok, batch / best["rows"], batch / best["legacy"]))
     return rows, throughput
 
 
@@ -154,17 +158,20 @@ def legacy_plane_normal_equations(model, T_world_root, theta, p_model, part, nor
 
 @contextlib.contextmanager
 def normal_equation_builder(name):
-    """Swap the solver's normal-equation builder ("new" = the library's, "legacy" = 33dcef2's)."""
+    """Swap the solver's normal equations: "new" = the library's (per-part moments where the residuals are eq. 4's),
+    "rows" = the library's rows summed at every iterate (no moments), "legacy" = 33dcef2's builder at every iterate."""
     if name == "new":
         yield
         return
-    original = pose_solver_module.plane_normal_equations
-    pose_solver_module.plane_normal_equations = legacy_plane_normal_equations
+    original = pose_solver_module.plane_normal_equations, pose_solver_module.plane_moments
+    pose_solver_module.plane_moments = lambda *args, **kwargs: None  # no moments: the rows at every iterate
+    if name == "legacy":
+        pose_solver_module.plane_normal_equations = legacy_plane_normal_equations
     jax.clear_caches()  # the solver's own jit cache would otherwise hand back the other program
     try:
         yield
     finally:
-        pose_solver_module.plane_normal_equations = original
+        pose_solver_module.plane_normal_equations, pose_solver_module.plane_moments = original
         jax.clear_caches()
 
 
@@ -192,16 +199,16 @@ def best_of(fn, repeats):
 
 
 def run_joints(joint_counts, legacy_joint_counts, num_points, batch, seed=0, rounds=5, repeats=5):
-    """Compile seconds, HLO size and vmapped solves/s per joint count, new and legacy builders.
+    """Compile seconds, HLO size and vmapped solves/s per joint count, new, rows and legacy builders.
 
-    Both programs of a joint count are compiled first and then timed in alternation (`rounds` x
+    The programs of a joint count are compiled first and then timed in alternation (`rounds` x
     `repeats` calls each, the fastest kept), so that load from other processes hits both alike.
     """
     out = []
     for num_joints in sorted(set(joint_counts) | set(legacy_joint_counts)):
         model, corr, T0, theta0 = joint_scene_batch(num_joints, num_points, batch, np.random.default_rng(seed))
         programs = {}
-        for builder in ("legacy", "new"):
+        for builder in ("legacy", "rows", "new"):
             if num_joints not in (legacy_joint_counts if builder == "legacy" else joint_counts):
                 continue
             with normal_equation_builder(builder):
@@ -220,7 +227,7 @@ def run_joints(joint_counts, legacy_joint_counts, num_points, batch, seed=0, rou
                 args = (corr, T0, theta0)
                 best[builder] = min(best[builder], best_of(lambda f=compiled, a=args: jax.block_until_ready(f(*a)), repeats))
         for builder, (_, compile_s, hlo_lines, sol) in programs.items():
-            name = "legacy (33dcef2)" if builder == "legacy" else "new"
+            name = {"legacy": "legacy (33dcef2)", "rows": "rows at every iterate", "new": "new (moments)"}[builder]
             steps, ok = float(np.mean(np.asarray(sol.num_steps))), float(np.mean(np.asarray(sol.status) == 0))
             row = (name, num_joints, model.num_dof, compile_s, hlo_lines, batch / best[builder], steps, ok)
             print("joints:", row, flush=True)
@@ -247,22 +254,24 @@ def to_markdown(rows, throughput, trials, command, joint_rows=(), joint_points=0
     lines += [
         "",
         (
-            "Batched (vmap, one jit call, float32, 1 px noise; fastest of alternated calls; the last column swaps "
-            "in the normal-equation builder of 33dcef2):"
+            "Batched (vmap, one jit call, float32, 1 px noise; fastest of alternated calls; the last two columns "
+            "swap in the rows summed at every iterate, the solver before its per-part moments, and the "
+            "normal-equation builder of 33dcef2):"
         ),
         "",
-        "| points | batch | solves / s | mean GN steps | converged | solves / s, 33dcef2 builder |",
-        "|---:|---:|---:|---:|---:|---:|",
+        "| points | batch | solves / s | mean GN steps | converged | solves / s, rows at every iterate | solves / s, 33dcef2 builder |",
+        "|---:|---:|---:|---:|---:|---:|---:|",
     ]
-    for n, b, sps, steps, ok, legacy_sps in throughput:
-        lines.append(f"| {n} | {b} | {sps:,.0f} | {steps:.2f} | {100 * ok:.1f}% | {legacy_sps:,.0f} |")
+    for n, b, sps, steps, ok, rows_sps, legacy_sps in throughput:
+        lines.append(f"| {n} | {b} | {sps:,.0f} | {steps:.2f} | {100 * ok:.1f}% | {rows_sps:,.0f} | {legacy_sps:,.0f} |")
     if joint_rows:
         lines += [
             "",
             (
                 f"Joint count (arm of J links, 2 cameras, {joint_points} points, 1 px noise, vmap {joint_batch}, "
-                "float32; compile = trace + lower + XLA compile of the batched solve; legacy = the normal-equation "
-                "builder of 33dcef2 swapped into the same solver):"
+                "float32; compile = trace + lower + XLA compile of the batched solve; rows at every iterate = the "
+                "library's rows summed at each Gauss-Newton iterate, the solver before its per-part moments; legacy = "
+                "the normal-equation builder of 33dcef2 swapped into the same solver):"
             ),
             "",
             "| normal equations | J | D | compile (s) | HLO lines | solves / s | mean GN steps | converged |",

@@ -127,6 +127,24 @@ def test_bad_input_names_the_problem(sequence, tracker):
         Tracker(np.zeros((3, 3)), sequence["camera"])
     with pytest.raises(ValueError, match="cues"):
         TrackerConfig(cues=("region", "colour"))
+    with pytest.raises(ValueError, match="depth_invariance"):
+        TrackerConfig(depth_invariance="yes")
+
+
+def test_a_chain_solves_eq_4_as_it_is_and_refuses_a_depth_scaling_it_would_not_apply(sequence):
+    """A chain's solves sum their rows per part once (no depth scaling: `TrackerConfig.depth_invariance` resolves to
+    False), so parameters asking for a depth scaling are refused, naming the field, unless the config asks for it."""
+    chain = jt.synth.demo_chain(2, dtype=jnp.float32)
+    assert TrackerConfig().resolved(articulated=True).depth_invariance is False
+    assert TrackerConfig().resolved(articulated=False).depth_invariance is True
+    params = jt.track.default_params(chain, (64, 64))
+    assert float(params.depth_invariant) == 0.0
+    scaled = eqx.tree_at(lambda p: p.depth_invariant, params, jnp.asarray(1.0))
+    with pytest.raises(ValueError, match="params.depth_invariant must be 0"):
+        Tracker(sequence["mesh"], sequence["camera"], model=chain, params=scaled)
+    tracker = Tracker(sequence["mesh"], sequence["camera"], model=chain, params=scaled,
+                      config=TrackerConfig(depth_invariance=True))
+    assert tracker.config.depth_invariance is True
 
 
 @pytest.mark.xdist_group("small_tracker")

@@ -127,7 +127,10 @@ class RefineSettings(eqx.Module):
         prior_follows_round: 1: the pose prior pulls toward each round's starting pose (M3T's damping per
             iteration); 0: toward the anchor (the prediction) for the whole frame.
         depth_invariance: p of each round's solve (`solve_pose(ray_origins=ctx.cameras' centres)`): residuals
-            × (Z₀ / Z)^p; 0: eq. 4 as it is.
+            × (Z₀ / Z)^p; 0: eq. 4 as it is. Read only where `depth_scaled`.
+        depth_scaled: (static) whether the solves take the cameras' centres and `depth_invariance` (True, the
+            default); False: eq. 4 as it is whatever `depth_invariance` holds, which lets each solve sum its rows per
+            part once instead of at every Gauss-Newton iterate (`jaxtrack.solve._moments.plane_moments`; chains' default).
         motion_robust_px: scale s (px of the crops) of a Cauchy loss on the motion modalities' rows: each round
             weighs a row by 1 / (1 + (e / s)²), e its reprojection error at the round's pose (IRLS), so that rows
             the pose does not explain (an occluder's flow) lose their pull; ≤ 0: off (eq. 5 as it is).
@@ -149,6 +152,7 @@ class RefineSettings(eqx.Module):
     motion_robust_px: jax.Array = eqx.field(default_factory=lambda: -jnp.ones(()))
     motion_rounds: jax.Array = eqx.field(default_factory=lambda: jnp.full((), jnp.inf))
     motion_late_factor: jax.Array = eqx.field(default_factory=lambda: jnp.zeros(()))
+    depth_scaled: bool = eqx.field(static=True, default=True)
 
 
 class RoundState(eqx.Module):
@@ -209,7 +213,7 @@ def _round(modalities, ctx, contexts, states, frames, params, settings: RefineSe
         pose_prior=PosePrior(jnp.where(settings.prior_follows_round > 0.5, pose.T_world_root, anchor.T_world_root),
                              settings.pose_prior_rotation, settings.pose_prior_translation,
                              settings.pose_prior_rotation_abs, settings.pose_prior_translation_abs),
-        ray_origins=ctx.cameras.center_world, depth_invariance=settings.depth_invariance,
+        ray_origins=ctx.cameras.center_world if settings.depth_scaled else None, depth_invariance=settings.depth_invariance,
     )
     new = Pose(sol.T_world_root, sol.theta)
     settled = mean_motion(ctx.model, fused, pose, new) < settings.settle_motion

@@ -33,6 +33,7 @@ from ..geometry import (
 )
 from ._correspondences import Correspondences
 from ._gauss_newton import damped_gauss_newton, solve_implicit
+from ._moments import PlaneMoments, moment_normal_equations, plane_moments
 from ._normal_equations import RayDepths, line_planes, plane_normal_equations, plane_residuals
 
 # The solver reports the library-wide status codes; `PoseStatus` is kept as its old name.
@@ -263,6 +264,8 @@ class PoseProblem(eqx.Module):
         prior_theta, prior_stiffness: (J,) anchor and scalar k of the `JointPrior` (k = 0: none).
         root_anchor, root_stiffness: (4, 4) anchor and (6,) k of the `PosePrior` (k = 0: none).
         depths: the rows' `RayDepths` when the residuals are depth-invariant (`solve_pose(ray_origins=)`), else None.
+        moments: without `depths`, the rows summed per part at T_init (`jaxtrack.solve._moments.plane_moments`), from
+            which every iterate's normal equations come; else None (the rows are summed at every iterate).
     """
 
     model: KinematicModel
@@ -277,6 +280,7 @@ class PoseProblem(eqx.Module):
     root_stiffness: jax.Array
     has_root_prior: bool = eqx.field(static=True, default=False)
     depths: RayDepths | None = None
+    moments: PlaneMoments | None = None
 
 
 def _weighted_residual(y: jax.Array, problem: PoseProblem) -> jax.Array:
@@ -306,11 +310,15 @@ def _gauss_newton_iterate(y0: jax.Array, problem: PoseProblem, config: SolverCon
 
     def normal_equations(x):
         T_root, theta = x
-        # Looked up at trace time, so experiments/bench_pose.py can swap in the builder it compares.
-        H, g, cost = plane_normal_equations(
-            problem.model, T_root, theta, corr.p_model, corr.part, problem.normals, problem.offsets, weight,
-            problem.depths, corr.n
-        )
+        if problem.moments is not None:
+            # eq. 4 as it is: the solve's rows summed per part once, each iterate combines the sums.
+            H, g, cost = moment_normal_equations(problem.model, T_root, theta, problem.moments)
+        else:
+            # Looked up at trace time, so experiments/bench_pose.py can swap in the builder it compares.
+            H, g, cost = plane_normal_equations(
+                problem.model, T_root, theta, corr.p_model, corr.part, problem.normals, problem.offsets, weight,
+                problem.depths, corr.n
+            )
         if problem.has_root_prior:  # pose prior: residual √k ⊙ e, e = log(T_anchor⁻¹ T_root)
             kr = problem.root_stiffness
 
@@ -492,13 +500,23 @@ def solve_pose(
         z0 = jnp.sum(clean.n * model_points_world(model, T_init_safe, theta_safe, clean.p_model, clean.part), -1) - offset
         power = jnp.clip(jnp.asarray(depth_invariance, dtype), 0.0, 1.0)
         depths = RayDepths(offset, jnp.where(z0 > 0, z0, 1.0), jnp.where(jnp.isfinite(power), power, 0.0))
+    # eq. 4 as it is (no depth scaling): the rows summed per part once, here, give the normal equations at every
+    # iterate and at the start (the same H, g and cost to rounding; the depth-scaled residuals are summed each time).
+    moments = None if depths is not None else plane_moments(model, T_init_safe, theta_safe, clean.p_model, clean.part,
+                                                            normals, offsets, weight)
+
+    def start_hessian():
+        if moments is not None:
+            return moment_normal_equations(model, T_init_safe, theta_safe, moments)[0]
+        return plane_normal_equations(model, T_init_safe, theta_safe, clean.p_model, clean.part, normals, offsets,
+                                      weight, depths, clean.n)[0]
+
     J = model.num_joints
     if prior is None or J == 0:
         prior_theta, stiffness = jnp.zeros((J,), dtype), jnp.zeros((), dtype)
     else:
         prior_theta = jnp.broadcast_to(jnp.asarray(prior.theta, dtype), (J,))
-        H0, _, _ = plane_normal_equations(model, T_init_safe, theta_safe, clean.p_model, clean.part, normals, offsets, weight,
-                                          depths, clean.n)
+        H0 = start_hessian()
         strength = jnp.asarray(prior.strength, dtype)
         stiffness = _prior_stiffness(H0, jnp.where(jnp.isfinite(strength) & (strength > 0), strength, 0.0))
         stiffness = jnp.where(jnp.isfinite(stiffness), stiffness, 0.0)
@@ -509,8 +527,7 @@ def solve_pose(
         anchor = jnp.asarray(pose_prior.T_anchor, dtype)
         ok = jnp.all(jnp.isfinite(anchor))
         root_anchor = jnp.where(ok, anchor, T_init_safe)
-        H0, _, _ = plane_normal_equations(model, T_init_safe, theta_safe, clean.p_model, clean.part, normals, offsets, weight,
-                                          depths, clean.n)
+        H0 = start_hessian()
         pos = lambda v: jnp.maximum(jnp.asarray(v, dtype), 0.0)
         root_stiffness = _root_prior_stiffness(H0, T_init_safe, PosePrior(
             root_anchor, pos(pose_prior.rotation), pos(pose_prior.translation), pos(pose_prior.rotation_abs),
@@ -518,7 +535,7 @@ def solve_pose(
     problem = PoseProblem(
         model=model, corr=clean, T_init=T_init_safe, sqrt_weight=_safe_sqrt(weight), normals=normals, offsets=offsets,
         prior_theta=prior_theta, prior_stiffness=stiffness, root_anchor=root_anchor, root_stiffness=root_stiffness,
-        has_root_prior=pose_prior is not None, depths=depths,
+        has_root_prior=pose_prior is not None, depths=depths, moments=moments,
     )
     if config.backend == "optimistix":
         sol = optx.least_squares(

@@ -142,6 +142,12 @@ class TrackerConfig(eqx.Module):
             background compile of the search (6.9 s of the 2 cores in a fresh process; a load from the on-disk cache
             after that), started at the first frame reported UNCERTAIN or LOST (`Tracker.warm_up_recovery`). The
             compiled step does not depend on it (`Tracker.setup`: one step program with and without recovery).
+        depth_invariance: whether the prediction's and the refinement's solves scale the residuals by depth
+            (`TrackerParams.depth_invariant`, with the cameras' centres) or solve eq. 4 as it is, summing each solve's
+            rows per part once (`jaxtrack.solve._moments.plane_moments`: the same normal equations to rounding, at a cost per
+            Gauss-Newton iterate independent of the rows). "auto" (the default, `resolved`): True for a rigid object
+            (whose default p is 1), False for a chain (whose default p is 0: `DEPTH_INVARIANT` says why); with False
+            the tracker refuses parameters with a non-zero `depth_invariant`.
     """
 
     cues: tuple = eqx.field(static=True, default=CUES)
@@ -161,6 +167,7 @@ class TrackerConfig(eqx.Module):
     sift_mode: str = eqx.field(static=True, default="surface")
     working_shape: tuple | str | None = eqx.field(static=True, default="auto")
     recovery: RecoveryConfig | None = eqx.field(static=True, default_factory=RecoveryConfig)
+    depth_invariance: bool | str = eqx.field(static=True, default="auto")
 
     def __check_init__(self):
         cues = tuple(self.cues)
@@ -185,6 +192,8 @@ class TrackerConfig(eqx.Module):
             if len(ws) != 2 or any(not isinstance(v, int) or v < 16 or v % f for v in ws):
                 raise ValueError(f"TrackerConfig.working_shape must be (h, w): integers ≥ 16 divisible by the level "
                                  f"set's density factor {f}, got {self.working_shape}")
+        if not (isinstance(self.depth_invariance, bool) or self.depth_invariance == "auto"):
+            raise ValueError(f"TrackerConfig.depth_invariance must be True, False or 'auto', got {self.depth_invariance!r}")
         if self.sift_mode not in ("surface", "vertex"):
             raise ValueError(f"TrackerConfig.sift_mode must be 'surface' or 'vertex', got {self.sift_mode!r}")
 
@@ -204,6 +213,8 @@ class TrackerConfig(eqx.Module):
         if isinstance(self.working_shape, str):  # "auto": not with the level set (measured at native crops only)
             dense = any(m.name == "levelset" for m in out.modalities())
             out = dataclasses.replace(out, working_shape=None if articulated or dense else RIGID_WORKING_SHAPE)
+        if isinstance(self.depth_invariance, str):  # "auto": scaled for rigid objects, eq. 4 (moments) for chains
+            out = dataclasses.replace(out, depth_invariance=not articulated)
         if out.working_shape is not None and out.flow.min_size > WORKING_FLOW_MIN_SIZE:
             out = dataclasses.replace(out, flow=dataclasses.replace(out.flow, min_size=WORKING_FLOW_MIN_SIZE))
         return out
@@ -304,7 +315,8 @@ class TrackerParams(eqx.Module):
         depth_invariant: p in [0, 1] of the prediction's and the refinement's solves (`jaxtrack.solve.solve_pose`'s
             `depth_invariance`, with the cameras' centres): each row's residual × (Z₀ / Z)^p, so that rows that
             disagree are not fitted by sliding the object toward the camera; 0: eq. 4 as it is (the tracker's
-            default for chains; 1 for rigid objects).
+            default for chains; 1 for rigid objects). Read where `TrackerConfig.depth_invariance` holds (rigid
+            objects by default); a chain's tracker refuses a non-zero value unless that is set.
         motion_robust_px: scale (px of the crops) of the Cauchy loss on the flow and SIFT rows: the prediction's
             second pass (`_robust_prediction`) and every refinement round (`jaxtrack.modality.RefineSettings
             .motion_robust_px`); ≤ 0: off (eq. 5 as it is; the default for chains, 2 for rigid objects).
@@ -661,7 +673,8 @@ def track_step(
     if motion_idx:
         motion = [modalities[i] for i in motion_idx]
         fused = fuse_rows(motion, [data[i] for i in motion_idx], params, prediction=True)
-        pred = _robust_prediction(ctx, model, fused, T_t, theta_t, params, setup.cameras.center_world,
+        pred = _robust_prediction(ctx, model, fused, T_t, theta_t, params,
+                                  setup.cameras.center_world if config.depth_invariance is not False else None,
                                   config.prediction_steps)
         use = is_usable(pred.status)
         predicted = use
@@ -680,7 +693,8 @@ def track_step(
                                   params.pose_prior_rotation, params.pose_prior_translation, params.render_reuse_px,
                                   params.pose_prior_rotation_abs, params.pose_prior_translation_abs,
                                   params.prior_follows_round, params.depth_invariant, params.motion_robust_px,
-                                  params.motion_rounds, params.motion_late_factor)
+                                  params.motion_rounds, params.motion_late_factor,
+                                  depth_scaled=config.depth_invariance is not False)
         res = refine_rounds(modalities, ctx, state.modalities, data, Pose(T_pred, theta_pred.astype(dtype)), params, settings,
                             rounds, steps, min_rounds=min_rounds, contexts=contexts)
         T_new, theta_new = res.pose.T_world_root, jnp.clip(res.pose.theta, params.theta_lower, params.theta_upper)

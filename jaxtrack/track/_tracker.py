@@ -392,6 +392,12 @@ class Tracker:
                              f"{self.model.num_parts} part(s)")
         # "auto" region modality: the correspondence lines (rigid objects and chains); working resolution for rigid ones.
         self.config = (TrackerConfig() if config is None else config).resolved(self.model.num_joints > 0)
+        if (params is not None and self.config.depth_invariance is False
+                and np.any(np.asarray(jax.device_get(params.depth_invariant)) != 0)):
+            raise ValueError("params.depth_invariant must be 0 when the solves are eq. 4 as it is "
+                             "(TrackerConfig.depth_invariance False, the default for a chain); got "
+                             f"{np.asarray(jax.device_get(params.depth_invariant)).tolist()}: pass "
+                             "TrackerConfig(depth_invariance=True) to scale the residuals by depth")
         self.user_params = params
         self.sift = SiftConfig() if sift is None else sift
         self.margin = int(margin)

@@ -290,7 +290,7 @@ def refine_pose_region(problem: RegionProblem, images, offsets, state: RegionSta
     p = _RegionOnlyParams(params, CueWeights())
     frame = modality.start(ctx, state, None, p)
     zero = jnp.zeros((), dtype)
-    settings = RefineSettings(params.settle_motion, params.joint_prior, zero, zero)
+    settings = RefineSettings(params.settle_motion, params.joint_prior, zero, zero, depth_scaled=False)
     res = refine_rounds((modality,), ctx, (state,), (frame,), Pose(T_init, theta_init), p, settings,
                         problem.config.outer_iterations, problem.config.solver_steps)
     carry = res.carries[0]
