@@ -181,7 +181,8 @@ def stage_breakdown(tracker, state, frames_np, repeats: int, host_cache: dict | 
     if motion:
         pred = eqx.filter_jit(lambda d: _robust_prediction(  # the step's prediction: with its Cauchy-weighted second pass
             ctx, model, fuse_rows([modalities[i] for i in motion], d, params, prediction=True), T_t, theta_t, params,
-            ctx.cameras.center_world, config.prediction_steps).T_world_root)
+            ctx.cameras.center_world if config.depth_invariance is not False else None,  # as the step
+            config.prediction_steps).T_world_root)
         out["ms"]["prediction solve"] = _median_ms(lambda: pred([data[i] for i in motion]), repeats)
         out["calls"]["prediction solve"] = 1
     if refined:
@@ -196,7 +197,9 @@ def stage_breakdown(tracker, state, frames_np, repeats: int, host_cache: dict | 
         solve = eqx.filter_jit(lambda sets: solve_pose(
             model, fuse_rows(modalities, sets, params), final.T_world_root, final.theta, SolverConfig(max_steps=config.region.solver_steps),
             prior=JointPrior(final.theta, params.region.joint_prior),
-            pose_prior=PosePrior(final.T_world_root, params.pose_prior_rotation, params.pose_prior_translation)).T_world_root)
+            pose_prior=PosePrior(final.T_world_root, params.pose_prior_rotation, params.pose_prior_translation),
+            ray_origins=ctx.cameras.center_world if config.depth_invariance is not False else None,  # as the step
+            depth_invariance=params.depth_invariant).T_world_root)
         out["ms"]["refinement solve"] = _median_ms(lambda: solve(sets), repeats)
         out["calls"]["refinement solve"] = rounds
         for m, mc, s, d, c in zip(modalities, contexts, state.modalities, data, carries):

@@ -145,6 +145,16 @@ def test_a_chain_solves_eq_4_as_it_is_and_refuses_a_depth_scaling_it_would_not_a
     tracker = Tracker(sequence["mesh"], sequence["camera"], model=chain, params=scaled,
                       config=TrackerConfig(depth_invariance=True))
     assert tracker.config.depth_invariance is True
+    # Parameters passed later are checked too (NaN and negative p read as 0, as the solver clips them), and a rigid
+    # object's tracker told not to scale has defaults that say so.
+    chain_tracker = Tracker(sequence["mesh"], sequence["camera"], model=chain)
+    assert chain_tracker._checked(eqx.tree_at(lambda p: p.depth_invariant, params, jnp.asarray(jnp.nan))) is not None
+    assert chain_tracker._checked(eqx.tree_at(lambda p: p.depth_invariant, params, jnp.asarray(-1.0))) is not None
+    with pytest.raises(ValueError, match="params.depth_invariant must be 0"):
+        chain_tracker.step(None, None, params=eqx.tree_at(lambda p: p.depth_invariant, params, jnp.full((3,), 0.5)))
+    rigid = Tracker(sequence["mesh"], sequence["camera"], config=TrackerConfig(depth_invariance=False))
+    assert float(rigid.params_for((64, 64)).depth_invariant) == 0.0
+    assert float(Tracker(sequence["mesh"], sequence["camera"]).params_for((64, 64)).depth_invariant) == 1.0
 
 
 @pytest.mark.xdist_group("small_tracker")

@@ -7,7 +7,7 @@ which under vmap on a CPU is many times slower; it stays available as
 `SolverConfig(backend="optimistix")` and the tests check both agree.
 
 Derivatives of the solution come from the implicit function theorem on the optimality condition
-∇_y ½|f(y, args)|² = 0 (`jax.lax.custom_root`), not from unrolling the iterations.
+∇_y ½|f(y, args)|² = 0 (a `jax.custom_jvp`, `solve_implicit`), not from unrolling the iterations.
 """
 
 from __future__ import annotations

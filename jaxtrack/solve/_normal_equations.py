@@ -202,10 +202,13 @@ def plane_normal_equations(
     A = [J_root; J_joints; s] (both planes of every correspondence), and one weighted product
     M = (A·w) Aᵀ gives H = M[:D, :D], g = M[:D, D] and the cost M[D, D]. One dot instead of a
     reduction per entry of H: XLA:CPU runs each reduction as its own kernel, and the tracker's
-    rounds are dominated by kernel launches (82 → 14 per call at N = 200: 0.16 → 0.03 ms; 2000 rows
+    rounds were dominated by kernel launches (82 → 14 per call at N = 200: 0.16 → 0.03 ms; 2000 rows
     0.29 → 0.07 ms). Under vmap the product becomes a batch of tiny matrix products: about even at 64
     problems of 200 rows (0.49 → 0.56 ms), slower at 464 (2-3.6 → 4.4 ms; the tracker's vmapped
     uses are a handful of hypotheses or parameter sets).
+
+    `solve_pose` calls it at every Gauss-Newton iterate for the depth-scaled residuals only; eq. 4 as it is takes the
+    per-part moments of the rows once per solve (`jaxtrack.solve._moments`).
 
     `weight` is (N,) per correspondence or (N, 2) per plane (`line_planes`' plane weights times it). With `depths`
     (and the rays' directions `n`) the residuals and their columns are the depth-invariant ones (`depth_invariant`).

@@ -392,13 +392,8 @@ class Tracker:
                              f"{self.model.num_parts} part(s)")
         # "auto" region modality: the correspondence lines (rigid objects and chains); working resolution for rigid ones.
         self.config = (TrackerConfig() if config is None else config).resolved(self.model.num_joints > 0)
-        if (params is not None and self.config.depth_invariance is False
-                and np.any(np.asarray(jax.device_get(params.depth_invariant)) != 0)):
-            raise ValueError("params.depth_invariant must be 0 when the solves are eq. 4 as it is "
-                             "(TrackerConfig.depth_invariance False, the default for a chain); got "
-                             f"{np.asarray(jax.device_get(params.depth_invariant)).tolist()}: pass "
-                             "TrackerConfig(depth_invariance=True) to scale the residuals by depth")
-        self.user_params = params
+        self._checked_params: tuple = ()
+        self.user_params = self._checked(params)
         self.sift = SiftConfig() if sift is None else sift
         self.margin = int(margin)
         self.texel_mm = texel_mm
@@ -654,13 +649,31 @@ class Tracker:
         self.crop_shape = (h, w)
         return (np.stack([y0, x0], -1).astype(np.float32), (h, w), scales.astype(np.float32))
 
+    def _checked(self, params: TrackerParams | None) -> TrackerParams | None:
+        """`params` (None passes), refused where they ask for a depth scaling the solves would not apply
+        (`TrackerConfig.depth_invariance` False; p is clipped to [0, 1], non-finite as 0, as `solve_pose` reads it).
+        Checked once per object (the last few kept by identity)."""
+        if (params is None or self.config.depth_invariance is not False or any(params is p for p in self._checked_params)
+                or isinstance(params.depth_invariant, jax.core.Tracer)):  # traced (a caller's jit / vmap): not readable
+            return params
+        p = np.asarray(jax.device_get(params.depth_invariant), np.float64)
+        if np.any(np.clip(np.nan_to_num(p, nan=0.0, posinf=0.0, neginf=0.0), 0.0, 1.0) > 0):
+            raise ValueError("params.depth_invariant must be 0 when the solves are eq. 4 as it is "
+                             "(TrackerConfig.depth_invariance False, the default for a chain); got "
+                             f"{p.tolist()}: pass TrackerConfig(depth_invariance=True) to scale the residuals by depth")
+        self._checked_params = (params,) + self._checked_params[:3]
+        return params
+
     def params_for(self, crop_shape) -> TrackerParams:
         """The parameters used for a crop size: the user's, or the defaults with ν = 0.001 |Ω|^0.7."""
         if self.user_params is not None:
             return self.user_params
         if crop_shape not in self._default_params:  # built once per crop size, not per frame
-            self._default_params[crop_shape] = default_params(self.model, crop_shape, self.dtype,
-                                                              joint_limits=self.joint_limits, pose_prior=self.pose_prior)
+            params = default_params(self.model, crop_shape, self.dtype, joint_limits=self.joint_limits,
+                                    pose_prior=self.pose_prior)
+            if self.config.depth_invariance is False:  # the solves take no depth scaling: the defaults say so
+                params = eqx.tree_at(lambda p: p.depth_invariant, params, jnp.zeros_like(params.depth_invariant))
+            self._default_params[crop_shape] = params
         return self._default_params[crop_shape]
 
     # --- tracking ---------------------------------------------------------------------------------
@@ -826,8 +839,9 @@ class Tracker:
             "turned_deg": the found pose's rotation from the lost one)).
 
         Raises:
-            ValueError: malformed frames.
+            ValueError: malformed frames, or `params` asking for a depth scaling the solves do not apply.
         """
+        params = self._checked(params)
         frames = self.check_frames(frames, "frames")
         timings: dict = {}
         start = time.perf_counter()
@@ -1046,7 +1060,7 @@ class Tracker:
         if self._recovery_warmup is not None:  # its compile, not a second one
             self._recovery_warmup.join()
         frames_j = to_device(self._frames_as_state(self.check_frames(frames, "frames")))
-        params = self.params_for(self.crop_shape) if params is None else params
+        params = self.params_for(self.crop_shape) if params is None else self._checked(params)
         reference = state.T_world_root if reference is None else jnp.asarray(reference, self.dtype)
         good = state.T_world_root if self.last_good_pose is None else self.last_good_pose
         return _recover_pose_jit(*self._recovery_args(state, frames_j, jnp.stack([reference, good]), params))
