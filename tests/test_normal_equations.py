@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 import jaxtrack as jt
+import jaxtrack.solve._pose_solver as pose_solver_module
 from jaxtrack.solve import SolverConfig, make_correspondences, solve_pose
 from jaxtrack.solve._moments import moment_normal_equations, plane_moments
 from jaxtrack.solve._normal_equations import (
@@ -234,13 +235,14 @@ def test_moments_keep_float32_precision_metres_from_the_origin(model_name):
 
 
 def test_a_chain_solved_from_moments_equals_the_solve_that_sums_its_rows_at_every_iterate():
-    """`solve_pose` on eq. 4 as it is takes the moments path (with a joint prior and a pose prior, whose stiffnesses
-    read H at the start); with the cameras' centres and p = 0 it sums the rows at every iterate: the same pose."""
+    """`solve_pose` on eq. 4 as it is takes the moments path (`moments_from_rows` 0: whatever the rows; with a joint
+    prior and a pose prior, whose stiffnesses read H at the start); with the cameras' centres and p = 0 it sums the
+    rows at every iterate: the same pose. With the default threshold these 40 rows take the rows path."""
     model = MODELS["chain3"]()
     scene, corr, _, _ = _problem(model, seed=6)
     T0 = jt.se3_exp(jnp.asarray([6.0, -4.0, 5.0, 0.04, 0.03, -0.02])) @ jnp.asarray(scene.T_world_root)
     theta0 = jnp.asarray(scene.theta) + 0.08
-    options = {"config": SolverConfig(max_steps=30), "prior": jt.solve.JointPrior(theta0, jnp.asarray(0.05)),
+    options = {"config": SolverConfig(max_steps=30, moments_from_rows=0), "prior": jt.solve.JointPrior(theta0, jnp.asarray(0.05)),
                    "pose_prior": jt.solve.PosePrior(T0, jnp.asarray(0.02), jnp.asarray(0.02))}
     moments = solve_pose(model, corr, T0, theta0, **options)
     rows = solve_pose(model, corr, T0, theta0, ray_origins=scene.cameras.center_world, depth_invariance=0.0, **options)
@@ -248,3 +250,13 @@ def test_a_chain_solved_from_moments_equals_the_solve_that_sums_its_rows_at_ever
     np.testing.assert_allclose(moments.T_world_root, rows.T_world_root, atol=1e-8)
     np.testing.assert_allclose(moments.theta, rows.theta, atol=1e-10)
     np.testing.assert_allclose(moments.cost, rows.cost, rtol=1e-8)
+    calls = []
+    original = pose_solver_module.plane_moments
+    pose_solver_module.plane_moments = lambda *a, **k: calls.append(1) or original(*a, **k)
+    try:
+        jax.make_jaxpr(lambda c: solve_pose(model, c, T0, theta0, config=SolverConfig(max_steps=30)))(corr)
+        assert not calls  # 40 rows < SolverConfig.moments_from_rows
+        jax.make_jaxpr(lambda c: solve_pose(model, c, T0, theta0, config=options["config"]))(corr)
+        assert calls
+    finally:
+        pose_solver_module.plane_moments = original

@@ -50,12 +50,19 @@ class SolverConfig(eqx.Module):
             equations (eq. 5), implicit derivatives through a `jax.custom_jvp` (`solve_implicit`); "optimistix":
             `optimistix.LevenbergMarquardt` (QR on the full Jacobian, optimistix's implicit adjoint),
             the reference implementation, ~30x slower under vmap on CPU.
+        moments_from_rows: the Gauss-Newton backend on eq. 4 as it is (no depth scaling) sums the rows per part
+            once per solve (`jaxtrack.solve._moments`) when they number at least this (capacity N), else at every
+            iterate. Measured (experiments/results/bench_pose.md, vmapped solves of 200 rows: rows at every iterate
+            1.8x (rigid) to 4x (24 joints) the solves per second of the moments, whose small per-part products and
+            float32 cost (3.9 against 3.7 steps) cost more than they save there; 1000 rows rigid: moments 1.1x;
+            the 4-camera human's 19 008 rows: the refinement's solves 95-104 → 29 ms a frame).
     """
 
     max_steps: int = eqx.field(static=True, default=50)
     rtol: float = eqx.field(static=True, default=1e-6)
     atol: float = eqx.field(static=True, default=1e-6)
     backend: str = eqx.field(static=True, default="gauss-newton")
+    moments_from_rows: int = eqx.field(static=True, default=1024)
 
     def __check_init__(self):
         if self.backend not in ("gauss-newton", "optimistix"):
@@ -500,10 +507,12 @@ def solve_pose(
         z0 = jnp.sum(clean.n * model_points_world(model, T_init_safe, theta_safe, clean.p_model, clean.part), -1) - offset
         power = jnp.clip(jnp.asarray(depth_invariance, dtype), 0.0, 1.0)
         depths = RayDepths(offset, jnp.where(z0 > 0, z0, 1.0), jnp.where(jnp.isfinite(power), power, 0.0))
-    # eq. 4 as it is (no depth scaling): the rows summed per part once, here, give the normal equations at every
-    # iterate and at the start (the same H, g and cost to rounding; the depth-scaled residuals are summed each time).
-    moments = None if depths is not None else plane_moments(model, T_init_safe, theta_safe, clean.p_model, clean.part,
-                                                            normals, offsets, weight)
+    # eq. 4 as it is (no depth scaling) on many rows: the rows summed per part once, here, give the normal equations at
+    # every iterate and at the start (the same H, g and cost to rounding; the depth-scaled residuals, and few rows,
+    # are summed each time: `SolverConfig.moments_from_rows`).
+    use_moments = depths is None and corr.weight.shape[0] >= config.moments_from_rows
+    moments = None if not use_moments else plane_moments(model, T_init_safe, theta_safe, clean.p_model, clean.part,
+                                                         normals, offsets, weight)
 
     def start_hessian():
         if moments is not None:
