@@ -130,7 +130,8 @@ class RefineSettings(eqx.Module):
             × (Z₀ / Z)^p; 0: eq. 4 as it is. Read only where `depth_scaled`.
         depth_scaled: (static) whether the solves take the cameras' centres and `depth_invariance` (True, the
             default); False: eq. 4 as it is whatever `depth_invariance` holds, which lets each solve sum its rows per
-            part once instead of at every Gauss-Newton iterate (`jaxtrack.solve._moments.plane_moments`; chains' default).
+            part once instead of at every Gauss-Newton iterate where they are many (`SolverConfig.moments_from_rows`,
+            `jaxtrack.solve._moments.plane_moments`; chains' default).
         motion_robust_px: scale s (px of the crops) of a Cauchy loss on the motion modalities' rows: each round
             weighs a row by 1 / (1 + (e / s)²), e its reprojection error at the round's pose (IRLS), so that rows
             the pose does not explain (an occluder's flow) lose their pull; ≤ 0: off (eq. 5 as it is).

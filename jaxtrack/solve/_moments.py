@@ -24,8 +24,11 @@ P̃_k = [I₆; on_path_k ⊙ twists] L(c_k) (D x 6) and G_k the 6 x 6 block of M
 its last column. The centring is for float32: uncentred, a twist's column ξ' · u cancels (|a| / |a − q_joint|)² in
 H's joint entries (a metre from the origin against a limb's length), and the cost's (s⁰ + (A − A⁰) v)² carries the
 translation column's change under a rotation about the model origin (ω × t, a hundred mm for a small step); centred,
-both terms are as small as the rows' own. The residual is kept relative to the start (s⁰, not d) for the same
-reason: the world offsets d (metres, in mm) would cancel against b · a to a residual of a millimetre.
+H and g are as precise as the rows' (tests/test_normal_equations.py). The residual is kept relative to the start (s⁰,
+not d) for the same reason: the world offsets d (metres, in mm) would cancel against b · a to a residual of a
+millimetre. What remains is the cost's (s⁰ + δ)², which loses digits where the start's residuals are much larger
+than the iterate's; near the optimum that can decide a step's acceptance by rounding. On few rows the per-part
+products cost more than they save (`SolverConfig.moments_from_rows`: the solver takes them from 1024 rows on).
 
 The two planes of a correspondence share q, so Σ_planes w b⊗v (b⊗v)ᵀ = (Σ_planes w b bᵀ) ⊗ v vᵀ, v = (q, 1): 6 x 10
 products of a correspondence, 12 for its s⁰ b ⊗ v and 1 for s⁰², summed per part in one product with the parts'

@@ -144,8 +144,9 @@ class TrackerConfig(eqx.Module):
             compiled step does not depend on it (`Tracker.setup`: one step program with and without recovery).
         depth_invariance: whether the prediction's and the refinement's solves scale the residuals by depth
             (`TrackerParams.depth_invariant`, with the cameras' centres) or solve eq. 4 as it is, summing each solve's
-            rows per part once where they are many (`SolverConfig.moments_from_rows`, `jaxtrack.solve._moments.plane_moments`: the same normal equations to rounding, at a cost per
-            Gauss-Newton iterate independent of the rows). "auto" (the default, `resolved`): True for a rigid object
+            rows per part once where they are many (`SolverConfig.moments_from_rows`,
+            `jaxtrack.solve._moments.plane_moments`: the same normal equations to rounding, at a cost per Gauss-Newton
+            iterate independent of the rows). "auto" (the default, `resolved`): True for a rigid object
             (whose default p is 1), False for a chain (whose default p is 0: `DEPTH_INVARIANT` says why); with False
             the tracker refuses parameters with a non-zero `depth_invariant`.
     """
