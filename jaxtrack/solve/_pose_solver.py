@@ -514,18 +514,16 @@ def solve_pose(
     moments = None if not use_moments else plane_moments(model, T_init_safe, theta_safe, clean.p_model, clean.part,
                                                          normals, offsets, weight)
 
-    def start_hessian():
-        if moments is not None:
-            return moment_normal_equations(model, T_init_safe, theta_safe, moments)[0]
-        return plane_normal_equations(model, T_init_safe, theta_safe, clean.p_model, clean.part, normals, offsets,
-                                      weight, depths, clean.n)[0]
-
     J = model.num_joints
+    H0 = None  # the data's H at the start, which both priors' stiffnesses read: built once, where a prior needs it
+    if (prior is not None and J > 0) or pose_prior is not None:
+        H0 = (moment_normal_equations(model, T_init_safe, theta_safe, moments)[0] if moments is not None else
+              plane_normal_equations(model, T_init_safe, theta_safe, clean.p_model, clean.part, normals, offsets,
+                                     weight, depths, clean.n)[0])
     if prior is None or J == 0:
         prior_theta, stiffness = jnp.zeros((J,), dtype), jnp.zeros((), dtype)
     else:
         prior_theta = jnp.broadcast_to(jnp.asarray(prior.theta, dtype), (J,))
-        H0 = start_hessian()
         strength = jnp.asarray(prior.strength, dtype)
         stiffness = _prior_stiffness(H0, jnp.where(jnp.isfinite(strength) & (strength > 0), strength, 0.0))
         stiffness = jnp.where(jnp.isfinite(stiffness), stiffness, 0.0)
@@ -536,7 +534,6 @@ def solve_pose(
         anchor = jnp.asarray(pose_prior.T_anchor, dtype)
         ok = jnp.all(jnp.isfinite(anchor))
         root_anchor = jnp.where(ok, anchor, T_init_safe)
-        H0 = start_hessian()
         pos = lambda v: jnp.maximum(jnp.asarray(v, dtype), 0.0)
         root_stiffness = _root_prior_stiffness(H0, T_init_safe, PosePrior(
             root_anchor, pos(pose_prior.rotation), pos(pose_prior.translation), pos(pose_prior.rotation_abs),
