@@ -281,14 +281,21 @@ def test_a_closed_outward_mesh_hides_its_back_faces_and_culling_them_renders_the
     pieces = lambda f_small: make_mesh(np.concatenate([v, small]), np.concatenate([f, f_small + len(v)]))
     assert hides_its_back_faces(pieces(f))  # two closed pieces, both outward (a body's capsules)
     assert not hides_its_back_faces(pieces(f[:, ::-1]))  # the small piece inward: the total volume is still > 0
-    for mesh, eye in ((torus_mesh(), [0, -250, -350]), (box, [120, -160, -300]), (box, [-40, 200, -260])):
-        cam, _, _ = _camera(eye)
-        T = jnp.eye(4)
-        outs = []
-        for cull in (False, True):
-            plan = plan_raster(face_extents(mesh, cam, T, cull_backfaces=cull), cull_backfaces=cull)
-            outs.append(render(mesh, cam, T, plan=plan))
-        plain, culled = outs
+    # One scene for every view: the torus (self-occluding) and the box (faces too large for a patch class: the tile
+    # pool) as two closed pieces; one plan per culling setting over all views, one class, so two programs compile.
+    tor = torus_mesh()
+    scene = make_mesh(np.concatenate([np.asarray(tor.vertices), v + [0.0, 0.0, 120.0]]),
+                      np.concatenate([np.asarray(tor.faces), f + len(tor.vertices)]))
+    assert hides_its_back_faces(scene)
+    cams = [_camera(eye)[0] for eye in ([0, -250, -350], [120, -160, -300], [-40, 200, -260])]
+    T = jnp.eye(4)
+    plans = {cull: plan_raster(np.stack([np.asarray(face_extents(scene, cam, T, cull_backfaces=cull)) for cam in cams]),
+                               patch_sizes=(32,), cull_backfaces=cull) for cull in (False, True)}
+    assert all(p.tile_faces > 0 for p in plans.values())  # the box's faces take the tile pool
+    assert plans[True].capacities[0] < plans[False].capacities[0]  # culling drops the back faces before placing
+    for cam in cams:
+        plain, culled = (render(scene, cam, T, plan=plans[cull]) for cull in (False, True))
         assert np.array_equal(np.asarray(plain.face_id), np.asarray(culled.face_id))
         assert np.array_equal(np.asarray(plain.depth), np.asarray(culled.depth))
-        assert int(np.sum(np.asarray(plain.face_id) >= 0)) > 1000
+        assert int(np.sum(np.asarray(plain.face_id) >= len(tor.faces))) > 1000  # the box shows
+        assert int(np.sum((np.asarray(plain.face_id) >= 0) & (np.asarray(plain.face_id) < len(tor.faces)))) > 1000
