@@ -1,5 +1,7 @@
 """SO(3)/SE(3): group axioms, exp against the matrix exponential, log∘exp = id, derivatives."""
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -92,16 +94,22 @@ def _left_jacobian_series(xi):
     return total
 
 
+@jax.jit
+def _left_jacobian_inverse_and_log_derivative(xi):
+    """J_l⁻¹(ξ) and jax.jacfwd of ε ↦ log(exp(ε̂) exp(ξ̂)) at 0: one compiled program for every example (op by
+    op, the 60 examples dispatched thousands of small programs)."""
+    E = se3_exp(xi)
+    return se3_left_jacobian_inverse(xi), jax.jacfwd(lambda e: se3_log(se3_exp(e) @ E))(jnp.zeros(6, xi.dtype))
+
+
 @settings(max_examples=60, deadline=None)
 @given(twists(max_angle=3.0))
 def test_left_jacobian_inverse_inverts_the_series_and_differentiates_the_log(xi):
     """J_l⁻¹ in closed form (and its series below θ² = 0.25) against the inverse of the series J_l, and against
     jax.jacfwd of ε ↦ log(exp(ε̂) exp(ξ̂)) at 0, in float64."""
-    got = np.asarray(se3_left_jacobian_inverse(jnp.asarray(xi)))
+    got, ref = (np.asarray(a) for a in _left_jacobian_inverse_and_log_derivative(jnp.asarray(xi)))
     scale = 1.0 + np.abs(xi[:3]).max()  # the translation block grows with |v| (mm)
     np.testing.assert_allclose(got @ _left_jacobian_series(xi), np.eye(6), atol=1e-9 * scale)
-    E = se3_exp(jnp.asarray(xi))
-    ref = np.asarray(jax.jacfwd(lambda e: se3_log(se3_exp(e) @ E))(jnp.zeros(6)))
     np.testing.assert_allclose(got, ref, atol=1e-8 * scale)
 
 
@@ -163,14 +171,24 @@ def _central_difference(f, x, eps=1e-6):
     return np.stack(cols, axis=-1)
 
 
+@functools.partial(jax.jit, static_argnums=0)
+def _jacobians(f, x):
+    """(jax.jacfwd(f)(x), jax.jacrev(f)(x)) as one compiled program per function and shape (op by op, each call
+    dispatched hundreds of small programs)."""
+    return jax.jacfwd(f)(x), jax.jacrev(f)(x)
+
+
+def _log_of_exp(xi):
+    return se3_log(se3_exp(xi))
+
+
 @pytest.mark.parametrize("angle", [0.0, 1e-8, 1e-3, 0.7, np.pi - 1e-4, np.pi])
 def test_exp_log_derivatives_agree(angle):
     rng = np.random.default_rng(1)
     axis = rng.normal(size=3)
     xi = np.concatenate([rng.normal(size=3) * 10, axis / np.linalg.norm(axis) * angle])
     for f, x in ((se3_exp, xi), (se3_log, np.asarray(se3_exp(xi)))):
-        fwd = jax.jacfwd(f)(jnp.asarray(x))
-        rev = jax.jacrev(f)(jnp.asarray(x))
+        fwd, rev = _jacobians(f, jnp.asarray(x))
         assert np.isfinite(fwd).all() and np.isfinite(rev).all()
         np.testing.assert_allclose(fwd, rev, atol=1e7 * EPS)
         if f is se3_exp or angle < 3.0:  # log is not differentiable in all directions at π (matrix off SO(3))
@@ -179,7 +197,7 @@ def test_exp_log_derivatives_agree(angle):
             np.testing.assert_allclose(fwd, _central_difference(f, x), atol=1e-6)
     # log∘exp on the tangent space: d log(exp(ξ))/dξ = I away from π.
     if angle < 3.0:
-        J = jax.jacfwd(lambda x: se3_log(se3_exp(x)))(jnp.asarray(xi))
+        J = _jacobians(_log_of_exp, jnp.asarray(xi))[0]
         np.testing.assert_allclose(J, np.eye(6), atol=1e-7)
 
 
@@ -202,7 +220,7 @@ def test_log_derivative_at_exactly_pi(axis):
     t = jnp.asarray([10.0, -20.0, 30.0])
     T = jnp.eye(4).at[:3, :3].set(R).at[:3, 3].set(t)
     for f, x in ((so3_log, R), (se3_log, T)):
-        fwd, rev = jax.jacfwd(f)(x), jax.jacrev(f)(x)
+        fwd, rev = _jacobians(f, x)
         assert np.isfinite(fwd).all() and np.isfinite(rev).all(), f.__name__
         np.testing.assert_allclose(fwd, rev, atol=1e4 * EPS)
     for b in np.eye(3):
