@@ -281,3 +281,42 @@ def test_validation_errors():
         sift_correspondences(empty, None, stack_cameras(cams), sift_params(), mode="nearest")
     with pytest.raises(ValueError, match="vertex"):
         sift_correspondences(empty, None, stack_cameras(cams), sift_params(), mode="vertex")
+
+
+@pytest.mark.parametrize("boundary_px", [0.0, 1.0, 2.0])
+def test_a_keypoint_near_another_part_or_the_background_makes_no_row(boundary_px):
+    """`SiftParams.boundary_px`: a keypoint is assigned only where the render shows its own part at every pixel
+    within that distance (Chebyshev): two parts side by side (columns 10-19 and 20-29 of rows 10-29), background
+    around them."""
+    from types import SimpleNamespace
+
+    from jaxtrack.cues.sift._assign import _surface_rows
+
+    part = np.full((40, 40), -1, np.int32)
+    part[10:30, 10:20], part[10:30, 20:30] = 0, 1
+    rendered = SimpleNamespace(face_id=jnp.asarray(np.where(part >= 0, 7, -1)), part_id=jnp.asarray(part),
+                               p_model=jnp.zeros((40, 40, 3)))
+    # (column, row) of keypoints and their Chebyshev distance to the nearest pixel of another part or background
+    points = np.array([[15.0, 20.0], [19.0, 20.0], [18.0, 20.0], [17.0, 20.0], [21.0, 20.0], [25.0, 11.0],
+                       [25.0, 12.0], [25.0, 28.0], [12.0, 20.0], [5.0, 5.0]])
+    distance = np.array([5, 1, 2, 3, 2, 2, 3, 2, 3, 0])
+    _, _, parts, ok = _surface_rows(jnp.asarray(points), jnp.asarray(points + 1.5), jnp.ones(len(points), bool),
+                                    rendered, jnp.asarray(boundary_px))
+    np.testing.assert_array_equal(np.asarray(ok), (distance > boundary_px) & (distance > 0))
+    np.testing.assert_array_equal(np.asarray(parts)[:-1], part[points[:-1, 1].astype(int), points[:-1, 0].astype(int)])
+    with pytest.raises(ValueError, match="boundary_px"):
+        sift_params(boundary_px=5.0)
+    with pytest.raises(ValueError, match="boundary_px"):
+        sift_params(boundary_px=-1.0)
+
+
+def test_the_tracker_takes_chains_sift_rows_inside_their_parts_only():
+    """Chains' default keeps keypoints 2 px inside their part (`CHAIN_SIFT_BOUNDARY_PX`); rigid objects' every
+    keypoint on the object."""
+    from jaxtrack.geometry import chain_model
+    from jaxtrack.track import default_params
+    from jaxtrack.track._tracker import CHAIN_SIFT_BOUNDARY_PX
+
+    chain = chain_model([-1, 0], [(0.0, 0.0, 1.0)], [(50.0, 0.0, 0.0)], dtype=F64)
+    assert float(default_params(rigid_model(F64), dtype=F64).sift.boundary_px) == 0.0
+    assert float(default_params(chain, dtype=F64).sift.boundary_px) == CHAIN_SIFT_BOUNDARY_PX == 2.0

@@ -15,22 +15,34 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ...geometry import Camera, KinematicModel, part_points_world, project_ideal, rigid_model
 from ...render import Mesh, RenderOutput
 from ...solve import Correspondences, Cue, correspondences_from_pixels
 from ._detect import SiftMatches
-from ._filters import SiftParams
+from ._filters import BOUNDARY_MAX_PX, SiftParams
+
+_OFFSETS = np.stack(np.meshgrid(np.arange(-BOUNDARY_MAX_PX, BOUNDARY_MAX_PX + 1),
+                                 np.arange(-BOUNDARY_MAX_PX, BOUNDARY_MAX_PX + 1), indexing="ij"), -1).reshape(-1, 2)
+_CHEBYSHEV = np.abs(_OFFSETS).max(-1)  # (K,) each offset's distance from the keypoint's pixel
 
 
-def _surface_rows(p_t, p_t1, valid, rendered: RenderOutput):
+def _surface_rows(p_t, p_t1, valid, rendered: RenderOutput, boundary_px):
+    """The rendered surface point under each keypoint (N,), where the render shows the keypoint's part at every
+    pixel within `boundary_px` (`SiftParams.boundary_px`; the window clipped at the render's border)."""
     h, w = rendered.face_id.shape
     q = jnp.round(p_t)
     u = jnp.clip(q[:, 0].astype(jnp.int32), 0, w - 1)
     v = jnp.clip(q[:, 1].astype(jnp.int32), 0, h - 1)
     on_object = rendered.face_id[v, u] >= 0
+    part = rendered.part_id[v, u]
+    near = jnp.asarray(_CHEBYSHEV) <= boundary_px  # (K,)
+    around = rendered.part_id[jnp.clip(v[:, None] + _OFFSETS[:, 0], 0, h - 1),
+                              jnp.clip(u[:, None] + _OFFSETS[:, 1], 0, w - 1)]  # (N, K)
+    inside = ~jnp.any(near & (around != part[:, None]), axis=1)
     pixel = jnp.stack([u, v], -1).astype(p_t.dtype) + (p_t1 - p_t)
-    return pixel, rendered.p_model[v, u], jnp.maximum(rendered.part_id[v, u], 0), valid & on_object
+    return pixel, rendered.p_model[v, u], jnp.maximum(part, 0), valid & on_object & inside
 
 
 def _vertex_rows(p_t, p_t1, valid, rendered: RenderOutput, vertex_px, mesh: Mesh, max_px):
@@ -47,7 +59,8 @@ def _correspondences_body(matches, rendered, cameras, params, weight, mesh, mode
     num_cameras, cap = matches.valid.shape
     cam_index = jnp.repeat(jnp.arange(num_cameras, dtype=jnp.int32), cap)
     if mode == "surface":
-        pixel, p_model, part, ok = jax.vmap(_surface_rows)(matches.p_t, matches.p_t1, matches.valid, rendered)
+        pixel, p_model, part, ok = jax.vmap(lambda a, b, c, r: _surface_rows(a, b, c, r, params.boundary_px))(
+            matches.p_t, matches.p_t1, matches.valid, rendered)
     else:
         model = rigid_model(mesh.vertices.dtype) if model is None else model
         v_world = part_points_world(model, T_world_root, theta, mesh.vertices, mesh.vertex_part)

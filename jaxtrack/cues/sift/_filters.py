@@ -31,6 +31,10 @@ class SiftParams(eqx.Module):
         backprojection_px: largest distance between the projected model point (preliminary pose)
             and the matched pixel.
         max_vertex_px: vertex assignment only: largest distance of the keypoint to its vertex.
+        boundary_px: surface assignment only: a keypoint makes a row only where the render at χ_t shows its part at
+            every pixel within this distance (Chebyshev, pixels of the render, at most `BOUNDARY_MAX_PX`): no other
+            part and no background. A keypoint that close to a part's outline belongs to it only if the pose at t is
+            right to about that distance, and its descriptor spans both sides. 0 = every keypoint on the object.
     """
 
     gross_factor: jax.Array
@@ -39,6 +43,10 @@ class SiftParams(eqx.Module):
     static_px: jax.Array
     backprojection_px: jax.Array
     max_vertex_px: jax.Array
+    boundary_px: jax.Array
+
+
+BOUNDARY_MAX_PX = 4  # the largest `SiftParams.boundary_px` (the window the assignment reads is static)
 
 
 def sift_params(
@@ -48,9 +56,11 @@ def sift_params(
     static_px=1.0,
     backprojection_px=2.0,
     max_vertex_px=15.0,
+    boundary_px=0.0,
     dtype=jnp.float32,
 ) -> SiftParams:
-    """`SiftParams` with defaults; raises ValueError naming a non-positive parameter."""
+    """`SiftParams` with defaults; raises ValueError naming a non-positive parameter (`boundary_px`: outside
+    [0, `BOUNDARY_MAX_PX`])."""
     values = {
         "gross_factor": gross_factor,
         "gross_slack_px": gross_slack_px,
@@ -62,6 +72,9 @@ def sift_params(
     for name, value in values.items():
         if not float(value) > 0:
             raise ValueError(f"sift_params: {name} must be > 0, got {value}")
+    if not 0.0 <= float(boundary_px) <= BOUNDARY_MAX_PX:
+        raise ValueError(f"sift_params: boundary_px must be in [0, {BOUNDARY_MAX_PX}], got {boundary_px}")
+    values["boundary_px"] = boundary_px
     return SiftParams(**{k: to_device(v, dtype) for k, v in values.items()})
 
 
