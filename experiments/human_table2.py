@@ -170,10 +170,17 @@ def _child(argv) -> None:
     ap.add_argument("--working-shape", default=None)
     args = ap.parse_args(argv)
     region = json.loads(args.region)
+    boundary = region.pop("sift_boundary_px", None)
     if region:  # the experiment's knob on the chain defaults (tangent weight, joint prior)
         from jaxtrack.track import _tracker
 
         _tracker.CHAIN_REGION = {**_tracker.CHAIN_REGION, **region}
+    if boundary is not None:  # SIFT rows only this far inside their part (`SiftParams.boundary_px`)
+        import functools
+
+        from jaxtrack.track import _tracker
+
+        _tracker.sift_params = functools.partial(_tracker.sift_params, boundary_px=float(boundary))
     seq, subset, fps = args.one
     out = run_one(pathlib.Path(seq), subset, int(fps), pathlib.Path(args.overlay_dir) if args.overlay_dir else None,
                   args.region_modality, _shape(args.working_shape))
@@ -249,7 +256,9 @@ def report(args, command, rows, elapsed, load) -> str:
         (f"Region cue (\"region\" in the cues): {_REGION_NAMES[args.region]}; crops "
          f"{'resampled to ' + args.working_shape if args.working_shape else 'at the native resolution'}; "
          f"on chains {_region_settings(args)} "
-         "(`jaxtrack.track` CHAIN_REGION with this run's overrides); one configuration per subprocess."), "",
+         "(`jaxtrack.track` CHAIN_REGION with this run's overrides); SIFT rows from keypoints "
+         + (f"{args.sift_boundary_px:g} px inside their part (`SiftParams.boundary_px`)" if args.sift_boundary_px
+            else "anywhere on the object (the default)") + "; one configuration per subprocess."), "",
         (f"Error: |estimated − true| of {', '.join(LIMBS)} over the tracked frames, mean ± std (degrees). Failure: the "
         f"first frame with any joint off by more than {FAIL_DEG:.0f}°."), "",
         ("| motion | cues | fps | frames | knee + elbow error (°) | max (°) | first failure | root (° / mm) | s / frame | "
@@ -333,15 +342,21 @@ def main(argv=None):
                     help="override the region cue's tangent weight for chains (jaxtrack.track CHAIN_REGION)")
     ap.add_argument("--joint-prior", type=float, default=None,
                     help="override the joint prior's strength for chains (jaxtrack.track CHAIN_REGION)")
+    ap.add_argument("--sift-boundary-px", type=float, default=None,
+                    help="SIFT rows only from keypoints this many px inside their part (SiftParams.boundary_px, 0-4; "
+                         "default 0: every keypoint on the object)")
     ap.add_argument("--motion-stats", action="store_true",
                     help="only print (and write to results/human_motion_steps.md) how far each motion moves per frame")
     args = ap.parse_args(argv)
+    if args.sift_boundary_px is not None and not 0 <= args.sift_boundary_px <= 4:
+        ap.error(f"--sift-boundary-px must be in [0, 4], got {args.sift_boundary_px}")
     out = pathlib.Path(args.out) if args.out else None  # the figures go beside the table unless named
     if args.plot is None:
         args.plot = str(out.with_suffix(".png")) if out else None
     if args.overlay is None:
         args.overlay = str(out.with_name(out.stem + "_overlay.png")) if out else None
-    region = {k: v for k, v in (("tangent_weight", args.tangent_weight), ("joint_prior", args.joint_prior)) if v is not None}
+    region = {k: v for k, v in (("tangent_weight", args.tangent_weight), ("joint_prior", args.joint_prior),
+                                ("sift_boundary_px", args.sift_boundary_px)) if v is not None}
     args.motions = [m.strip() for m in args.motions.split(",") if m.strip()]
     _shape(args.working_shape)  # a malformed shape stops here, not in every child
     fps_list = [int(f) for f in args.fps.split(",")]

@@ -309,14 +309,3 @@ def test_a_keypoint_near_another_part_or_the_background_makes_no_row(boundary_px
     with pytest.raises(ValueError, match="boundary_px"):
         sift_params(boundary_px=-1.0)
 
-
-def test_the_tracker_takes_chains_sift_rows_inside_their_parts_only():
-    """Chains' default keeps keypoints 2 px inside their part (`CHAIN_SIFT_BOUNDARY_PX`); rigid objects' every
-    keypoint on the object."""
-    from jaxtrack.geometry import chain_model
-    from jaxtrack.track import default_params
-    from jaxtrack.track._tracker import CHAIN_SIFT_BOUNDARY_PX
-
-    chain = chain_model([-1, 0], [(0.0, 0.0, 1.0)], [(50.0, 0.0, 0.0)], dtype=F64)
-    assert float(default_params(rigid_model(F64), dtype=F64).sift.boundary_px) == 0.0
-    assert float(default_params(chain, dtype=F64).sift.boundary_px) == CHAIN_SIFT_BOUNDARY_PX == 2.0

@@ -159,11 +159,6 @@ def _env_number(name: str, default: str, low: float, high: float) -> float:
     return value
 
 
-# Chains: a SIFT keypoint makes a row only where the render at χ_t shows its part 2 px around it (`SiftParams.boundary_px`;
-# README "SIFT rows only inside their part"): on the mocap walk, keypoints at the outline of the 10 px right foot, taken
-# for the foot, turned it 30° within 4 frames at every frame rate (region + SIFT alone the same; region + flow did not).
-# Rigid objects keep every keypoint on the object (0): not measured on them.
-CHAIN_SIFT_BOUNDARY_PX = 2.0
 MOTION_ROUNDS = _env_number("JAXTRACK_MOTION_ROUNDS", "inf", 0.0, float("inf"))
 MOTION_LATE_FACTOR = _env_number("JAXTRACK_MOTION_LATE_FACTOR", "0", 0.0, 1.0)
 
@@ -278,8 +273,8 @@ def default_params(
     `joint_limits` = (lower, upper), (J,) each in model units (radians, mm), e.g. a URDF's
     (`ArticulatedModel.lower/upper`); by default none (±inf), as the method uses no priors.
 
-    Chains' SIFT rows come only from keypoints 2 px inside their part (`CHAIN_SIFT_BOUNDARY_PX`,
-    `SiftParams.boundary_px`); rigid objects' from every keypoint on the object.
+    SIFT rows come from every keypoint on the object (`SiftParams.boundary_px` = 0): 2 px inside their part
+    measured mixed on the mocap human (README "SIFT keypoints at a part's outline").
     """
     if weights is None:
         weights = CueWeights(flow=TRACKER_FLOW_FACTOR)
@@ -308,7 +303,7 @@ def default_params(
         flow=flow,
         flow_beta=device(beta),
         region=region_params(crop_shape, dtype, **(CHAIN_REGION if J else {})),
-        sift=sift_params(boundary_px=CHAIN_SIFT_BOUNDARY_PX if J else 0.0, dtype=dtype),
+        sift=sift_params(dtype=dtype),
         occlusion=occlusion_params(dtype=dtype) if occlusion is None else occlusion,
         lost_iou=device(0.5),
         uncertain_iou=device(0.8),
