@@ -157,7 +157,8 @@ def run_in_subprocess(seq_path: pathlib.Path, subset: str, fps: int, overlay: pa
 
 def _child(argv) -> None:
     """`--one SEQ SUBSET FPS --result FILE [--overlay-dir DIR] [--region JSON] [--region-modality M]`: one run, its
-    result as JSON."""
+    result as JSON. The region JSON overrides CHAIN_REGION; its key "sift_boundary_px", where present, sets
+    `SiftParams.boundary_px` instead (`--sift-boundary-px`)."""
     import cv2
 
     cv2.setNumThreads(1)
@@ -348,8 +349,10 @@ def main(argv=None):
     ap.add_argument("--motion-stats", action="store_true",
                     help="only print (and write to results/human_motion_steps.md) how far each motion moves per frame")
     args = ap.parse_args(argv)
-    if args.sift_boundary_px is not None and not 0 <= args.sift_boundary_px <= 4:
-        ap.error(f"--sift-boundary-px must be in [0, 4], got {args.sift_boundary_px}")
+    from jaxtrack.cues.sift._filters import BOUNDARY_MAX_PX
+
+    if args.sift_boundary_px is not None and not 0 <= args.sift_boundary_px <= BOUNDARY_MAX_PX:
+        ap.error(f"--sift-boundary-px must be in [0, {BOUNDARY_MAX_PX}], got {args.sift_boundary_px}")
     out = pathlib.Path(args.out) if args.out else None  # the figures go beside the table unless named
     if args.plot is None:
         args.plot = str(out.with_suffix(".png")) if out else None

@@ -25,7 +25,7 @@ from jaxtrack.cues.sift import (
 from jaxtrack.cues.sift._assign import _correspondences_body
 from jaxtrack.cues.sift._filters import _filter_body
 from jaxtrack.geometry import rigid_model, rotation_error_deg, stack_cameras
-from jaxtrack.render import Renderer, make_mesh
+from jaxtrack.render import Renderer, RenderOutput, make_mesh
 from jaxtrack.solve import Cue, solve_pose
 from jaxtrack.synth import PRESETS, SynthConfig, render_sequence
 
@@ -268,6 +268,9 @@ def test_validation_errors():
         SiftConfig(ratio=1.5)
     with pytest.raises(ValueError, match="gross_factor"):
         sift_params(gross_factor=0.0)
+    for bad in (5.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="boundary_px"):
+            sift_params(boundary_px=bad)
     img = np.zeros((1, 32, 32), np.uint8)
     with pytest.raises(ValueError, match="region_t"):
         sift_matches(img, img, np.zeros((1, 16, 16), bool))
@@ -285,27 +288,25 @@ def test_validation_errors():
 
 @pytest.mark.parametrize("boundary_px", [0.0, 1.0, 2.0])
 def test_a_keypoint_near_another_part_or_the_background_makes_no_row(boundary_px):
-    """`SiftParams.boundary_px`: a keypoint is assigned only where the render shows its own part at every pixel
-    within that distance (Chebyshev): two parts side by side (columns 10-19 and 20-29 of rows 10-29), background
-    around them."""
-    from types import SimpleNamespace
-
-    from jaxtrack.cues.sift._assign import _surface_rows
-
+    """`SiftParams.boundary_px`: a keypoint makes a row only where the render shows its own part at every pixel
+    within that distance (Chebyshev: a pixel diagonally next to it is 1 away): two parts side by side (columns 10-19
+    and 20-29 of rows 10-29) with a one-pixel hole at (15, 15), background around them; through
+    `sift_correspondences`, as the tracker calls it."""
     part = np.full((40, 40), -1, np.int32)
     part[10:30, 10:20], part[10:30, 20:30] = 0, 1
-    rendered = SimpleNamespace(face_id=jnp.asarray(np.where(part >= 0, 7, -1)), part_id=jnp.asarray(part),
-                               p_model=jnp.zeros((40, 40, 3)))
+    part[15, 15] = -1
+    on = jnp.asarray(part) >= 0
+    rendered = _stack(RenderOutput(depth=jnp.where(on, 500.0, jnp.inf), face_id=jnp.where(on, 7, -1),
+                                   p_model=jnp.zeros((40, 40, 3)), part_id=jnp.asarray(part),
+                                   vertex_visible=jnp.zeros((1,), bool), overflow=jnp.zeros((), bool),
+                                   near_clipped=jnp.zeros((), jnp.int32), status=jnp.zeros((), jnp.int32)))
     # (column, row) of keypoints and their Chebyshev distance to the nearest pixel of another part or background
-    points = np.array([[15.0, 20.0], [19.0, 20.0], [18.0, 20.0], [17.0, 20.0], [21.0, 20.0], [25.0, 11.0],
-                       [25.0, 12.0], [25.0, 28.0], [12.0, 20.0], [5.0, 5.0]])
-    distance = np.array([5, 1, 2, 3, 2, 2, 3, 2, 3, 0])
-    _, _, parts, ok = _surface_rows(jnp.asarray(points), jnp.asarray(points + 1.5), jnp.ones(len(points), bool),
-                                    rendered, jnp.asarray(boundary_px))
-    np.testing.assert_array_equal(np.asarray(ok), (distance > boundary_px) & (distance > 0))
-    np.testing.assert_array_equal(np.asarray(parts)[:-1], part[points[:-1, 1].astype(int), points[:-1, 0].astype(int)])
-    with pytest.raises(ValueError, match="boundary_px"):
-        sift_params(boundary_px=5.0)
-    with pytest.raises(ValueError, match="boundary_px"):
-        sift_params(boundary_px=-1.0)
-
+    points = np.array([[16.0, 16.0], [18.0, 20.0], [17.0, 20.0], [21.0, 20.0], [25.0, 11.0], [25.0, 12.0],
+                       [25.0, 28.0], [12.0, 24.0], [19.0, 20.0], [5.0, 5.0]])
+    distance = np.array([1, 2, 3, 2, 2, 3, 2, 3, 1, 0])
+    _, cams, _, _ = _plane_scene()
+    matches = SiftMatches(jnp.asarray(points[None]), jnp.asarray(points[None] + 1.5), jnp.ones((1, len(points)), bool))
+    corr = sift_correspondences(matches, rendered, stack_cameras(cams[:1]), sift_params(boundary_px=boundary_px, dtype=F64))
+    np.testing.assert_array_equal(np.asarray(corr.weight) > 0, (distance > boundary_px) & (distance > 0))
+    kept = np.asarray(corr.weight) > 0
+    np.testing.assert_array_equal(np.asarray(corr.part)[kept], part[points[kept, 1].astype(int), points[kept, 0].astype(int)])

@@ -274,7 +274,7 @@ def default_params(
     (`ArticulatedModel.lower/upper`); by default none (±inf), as the method uses no priors.
 
     SIFT rows come from every keypoint on the object (`SiftParams.boundary_px` = 0): 2 px inside their part
-    measured mixed on the mocap human (README "SIFT keypoints at a part's outline").
+    measured mixed on the mocap human (README "Table II at the paper's length, and what turns the walk's right foot").
     """
     if weights is None:
         weights = CueWeights(flow=TRACKER_FLOW_FACTOR)

@@ -108,7 +108,8 @@ def sift_correspondences(
         matches: `SiftMatches` (C cameras, capacity N); invalid rows become zero-weight rows.
         rendered: the model rendered at χ_t in each camera, stacked on a leading C axis.
         cameras: stacked rig of C cameras.
-        params: `max_vertex_px` bounds the keypoint-vertex distance in "vertex" mode.
+        params: `max_vertex_px` bounds the keypoint-vertex distance in "vertex" mode; `boundary_px` keeps, in
+            "surface" mode, only keypoints that far inside their part in `rendered`.
         weight: weight of every surviving row (array; the tracker's fusion rescales it).
         mode: "surface" (default) or "vertex" (the paper's closest projected visible vertex; needs
             `mesh`, `T_world_root` (and `theta`, `model` for an articulated model)).
