@@ -6,6 +6,8 @@ worker builds them once even when tests of other modules run in between), so the
 step's compilation once.
 """
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -175,8 +177,17 @@ def test_vmap_over_cue_weights_equals_separate_runs(sequence, tracker, tracked):
     axes = eqx.tree_at(lambda p: (p.weights.flow, p.weights.sift), jax.tree.map(lambda _: None, base), (0, 0),
                        is_leaf=lambda x: x is None)
     setup = tracker.setup()
-    swept = eqx.filter_jit(jax.vmap(track_step, in_axes=(None, None, None, None, None, axes, None)))
-    _, many = swept(setup, state, jnp.asarray(frames), matches, jnp.asarray(offsets), batched, crop_shape)
+    # Compiled with the options the tracker's own programs take (`jaxtrack._exported.compiler_options`: the suite's
+    # quick build), which `eqx.filter_jit` cannot pass: the arrays traced, the rest static.
+    from jaxtrack._exported import compiler_options
+
+    arrays, rest = eqx.partition((setup, state, jnp.asarray(frames), matches, jnp.asarray(offsets), batched), eqx.is_array)
+
+    @functools.partial(jax.jit, static_argnums=1, **({"compiler_options": compiler_options()} if compiler_options() else {}))
+    def swept(arrays, rest):
+        return jax.vmap(track_step, in_axes=(None, None, None, None, None, axes, None))(*eqx.combine(arrays, rest), crop_shape)
+
+    _, many = swept(arrays, rest)
     poses = []
     for i in range(len(flow)):
         one = eqx.tree_at(lambda p: (p.weights.flow, p.weights.sift), base, (flow[i], sift[i]))
