@@ -172,14 +172,12 @@ def _child(argv) -> None:
     args = ap.parse_args(argv)
     region = json.loads(args.region)
     boundary = region.pop("sift_boundary_px", None)
-    if region:  # the experiment's knob on the chain defaults (tangent weight, joint prior)
-        from jaxtrack.track import _tracker
+    from jaxtrack.track import _tracker
 
+    if region:  # the experiment's knob on the chain defaults (tangent weight, joint prior)
         _tracker.CHAIN_REGION = {**_tracker.CHAIN_REGION, **region}
     if boundary is not None:  # SIFT rows only this far inside their part (`SiftParams.boundary_px`)
         import functools
-
-        from jaxtrack.track import _tracker
 
         _tracker.sift_params = functools.partial(_tracker.sift_params, boundary_px=float(boundary))
     seq, subset, fps = args.one

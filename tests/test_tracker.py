@@ -179,11 +179,11 @@ def test_vmap_over_cue_weights_equals_separate_runs(sequence, tracker, tracked):
     setup = tracker.setup()
     # Compiled with the options the tracker's own programs take (`jaxtrack._exported.compiler_options`: the suite's
     # quick build), which `eqx.filter_jit` cannot pass: the arrays traced, the rest static.
-    from jaxtrack._exported import compiler_options
+    from jaxtrack._exported import _jit_options, compiler_options
 
     arrays, rest = eqx.partition((setup, state, jnp.asarray(frames), matches, jnp.asarray(offsets), batched), eqx.is_array)
 
-    @functools.partial(jax.jit, static_argnums=1, **({"compiler_options": compiler_options()} if compiler_options() else {}))
+    @functools.partial(jax.jit, static_argnums=1, **_jit_options(compiler_options()))
     def swept(arrays, rest):
         return jax.vmap(track_step, in_axes=(None, None, None, None, None, axes, None))(*eqx.combine(arrays, rest), crop_shape)
 
