@@ -7,7 +7,10 @@ SIFT, occlusion detection). Per frame the evidence the step reports is kept:
 - motion: 1 − `motion_inliers` (flow / SIFT rows that disagree with the final pose);
 - occluded: `occluded_fraction` (object pixels whose appearance disagrees with the model, eq. 9);
 - appearance: `appearance_distance` (mean histogram distance d of eq. 9 over the known object pixels);
-- jump: the rotation (°/10) from the motion prediction to the final pose, and from the pose at t.
+- jump_pred: the rotation (°/10) from the motion prediction to the final pose;
+- and the running average of each of these over the frames so far (`*_avg`: a · average + (1 − a) · frame,
+  a = `TrackerParams.loss_evidence_decay`, from zeros at the first frame): a pose that drifts off slowly shows weak
+  evidence on many frames in a row.
 
 Two predictors of "beyond 5 cm / 5°" are scored against the truth:
 
@@ -39,7 +42,7 @@ from jaxtrack.bench import command_line, start_experiment
 
 RESULTS = pathlib.Path(__file__).resolve().parent / "results"
 from jaxtrack.track._step import LOSS_EVIDENCE as FEATURES
-from jaxtrack.track._step import LOSS_WEIGHTS
+from jaxtrack.track._step import LOSS_FRAME_EVIDENCE, LOSS_WEIGHTS
 
 MAX_DEG, MAX_MM = 5.0, 50.0
 
@@ -158,8 +161,22 @@ def fit_logistic(X: np.ndarray, y: np.ndarray, l2: float = 1e-2, iters: int = 50
     return w
 
 
+def fit_models(rows: list[dict]) -> np.ndarray:
+    """(2, 1 + len(FEATURES)) the tracker's two models fitted on `rows`: row 0 on the frame's own evidence alone (zero
+    weights on the running averages), row 1 on all of it (`jaxtrack.track._step.LOSS_WEIGHTS`' layout)."""
+    X = design(rows)
+    y = np.array([r["failed"] for r in rows], float)
+    n = 1 + len(LOSS_FRAME_EVIDENCE)
+    frame = np.zeros(X.shape[1])
+    frame[:n] = fit_logistic(X[:, :n], y)
+    return np.stack([frame, fit_logistic(X, y)])
+
+
 def probability(w: np.ndarray, rows: list[dict]) -> np.ndarray:
-    return 1.0 / (1.0 + np.exp(-np.clip(design(rows) @ w, -30, 30)))
+    """p(fail) per row of `rows`: the largest of the models' (rows of `w`; the tracker's confidence is the least
+    p(right))."""
+    logits = design(rows) @ np.atleast_2d(w).T
+    return np.max(1.0 / (1.0 + np.exp(-np.clip(logits, -30, 30))), axis=1)
 
 
 # --- report -------------------------------------------------------------------------------------------------
@@ -172,6 +189,9 @@ def _pr_cells(flag, y) -> str:
 
     p, r = precision_recall(flag, y)
     return f"{_f(p)} | {_f(r)}"
+
+
+MODEL_NAMES = ("the frame alone", "with the running averages")
 
 
 def report(command, elapsed_s, load, calib, evals, w) -> str:
@@ -190,10 +210,11 @@ def report(command, elapsed_s, load, calib, evals, w) -> str:
              "Predictors of a failed frame (precision P, recall R):"),
              "- *before*: the rule up to now, the contour agreement below 0.8 (`uncertain_iou`: UNCERTAIN or LOST);",
              ("- *status*: the tracker's status now, LOST or UNCERTAIN, from its calibrated confidence "
-             "1 − σ(w · [1, `FrameResult.loss_evidence`]) with the weights in `jaxtrack.track._step.LOSS_WEIGHTS` "
+             "min_k 1 − σ(w_k · [1, `FrameResult.loss_evidence`]) with the models in `jaxtrack.track._step.LOSS_WEIGHTS` "
              "(UNCERTAIN below 0.5, LOST below 0.25); *LOST*: that status alone;"),
-             ("- *refit*: the same logistic form fitted by this run on its calibration sequences, p(fail) > 0.5 "
-             "(equal to *status* when the weights in the code are this run's)."), "",
+             ("- *refit*: the same models fitted by this run on its calibration sequences (one on the frame's own "
+              "evidence, one with the running averages), the larger p(fail) > 0.5 (equal to *status* when the weights "
+              "in the code are this run's)."), "",
              "## Evaluation sequences (not seen by the calibration)", "",
              "| sequence | frames | failed | flagged (status) | before P | before R | status P | status R | LOST P | LOST R | refit P | refit R |",
              "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
@@ -208,15 +229,22 @@ def report(command, elapsed_s, load, calib, evals, w) -> str:
                  f"{_pr_cells(flagged(all_rows), y)} | {_pr_cells(lost(all_rows), y)} | {_pr_cells(refit(all_rows), y)} |")
     rows_c = [r for _, rs in calib for r in rs]
     yc = np.array([r["failed"] for r in rows_c])
-    same = np.allclose(w, LOSS_WEIGHTS, atol=5e-3)
+    tracker_w = np.atleast_2d(np.asarray(LOSS_WEIGHTS, np.float64))
+    same = [k < len(tracker_w) and np.allclose(w[k], tracker_w[k], atol=5e-3) for k in range(len(w))]
     lines += ["", "Goal (issue 24): precision and recall ≥ 0.9 on these sequences.", "",
               "## The calibrated combination", "",
               (f"Fitted on {len(calib)} calibration sequences ({len(rows_c)} frames, {int(yc.sum())} failed; pose jumps "
                f"of 20-60° injected into every other one), refit P | R on them: {_pr_cells(refit(rows_c), yc)}."), "",
               "| weights | " + " | ".join(("intercept", *FEATURES)) + " |", "|---|" + "---:|" * (len(FEATURES) + 1),
-              "| this run's fit | " + " | ".join(f"{v:.3f}" for v in w) + " |",
-              "| the tracker's (`LOSS_WEIGHTS`) | " + " | ".join(f"{v:.3f}" for v in LOSS_WEIGHTS) + " |", "",
-              f"The tracker's weights {'are' if same else 'are not'} this run's fit.", "",
+              *(f"| this run's fit, {MODEL_NAMES[k]} | " + " | ".join(f"{v:.3f}" for v in w[k]) + " |" for k in range(len(w))),
+              *(f"| the tracker's (`LOSS_WEIGHTS[{k}]`), {MODEL_NAMES[k]} | " + " | ".join(f"{v:.3f}" for v in tracker_w[k]) + " |"
+                for k in range(len(tracker_w))), "",
+              *(f"The tracker's model {k} ({MODEL_NAMES[k]}) {'is' if same[k] else 'is not'} this run's fit." for k in range(len(w))), "",
+              ("Each of this run's fits alone and the larger p(fail) of the two, on the evaluation sequences (P | R of "
+               "p(fail) > 0.5 | of p(fail) > 0.75, LOST's bound):"), "",
+              "| model | flagged P | flagged R | LOST P | LOST R |", "|---|---:|---:|---:|---:|",
+              *(f"| {label} | {_pr_cells(probability(wk, all_rows) > 0.5, y)} | {_pr_cells(probability(wk, all_rows) > 0.75, y)} |"
+                for label, wk in ((MODEL_NAMES[0], w[0]), (MODEL_NAMES[1], w[1]), ("the larger of the two", w))), "",
               "Mean evidence on the evaluation frames, tracked / failed:", "",
               "| evidence | tracked | failed |", "|---|---:|---:|"]
     for f in FEATURES:
@@ -270,9 +298,7 @@ def main(argv=None):
             calib.append((name, track(seq, inject[0], inject[1], seed=i)))
             print(f"[loss_detection] calibration {name}: {sum(r['failed'] for r in calib[-1][1])}/{len(calib[-1][1])} failed "
                   f"({clock.minutes():.1f} min)", file=sys.stderr, flush=True)
-        X = design([r for _, rs in calib for r in rs])
-        y = np.array([r["failed"] for _, rs in calib for r in rs], float)
-        w = fit_logistic(X, y)
+        w = fit_models([r for _, rs in calib for r in rs])
         evals = []
         for i, (name, cfg) in enumerate(evaluation_configs(args.scale, args.frames, args.quick)):
             seq = read_sequence(tp.write_preset(f"eval{i}", cfg, seq_dir))

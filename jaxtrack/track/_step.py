@@ -75,11 +75,22 @@ CUES = ("region", "flow", "sift")
 # working-resolution table against native crops (experiments/results/working_resolution.md).
 RIGID_WORKING_SHAPE = (96, 128)
 REGION_MODALITIES = ("levelset", "lines")
-# The evidence of a lost frame (`FrameResult.loss_evidence`, in this order) and the logistic weights that turn it
-# into p(frame beyond 5 cm / 5°): [intercept, one per feature], fitted by experiments/loss_detection.py on its
-# calibration sequences (other seeds, objects and motions than the sequences it is evaluated on).
-LOSS_EVIDENCE = ("contour", "motion", "occluded", "appearance", "jump_pred")
-LOSS_WEIGHTS = (-3.432, 20.073, 1.809, 12.357, -5.943, 0.294)
+# The evidence of a lost frame (`FrameResult.loss_evidence`, in this order) and the logistic models that turn it
+# into p(frame beyond 5 cm / 5°), fitted by experiments/loss_detection.py on its calibration sequences (other seeds,
+# objects and motions than the sequences it is evaluated on). The frame's own evidence comes first, then its running
+# average over the frames before (`TrackerState.loss_evidence_average`: a · average + (1 − a) · frame, a =
+# LOSS_EVIDENCE_DECAY, zero at `Tracker.start`): a pose that drifts off slowly shows weak evidence on many frames in a
+# row (issue 24's "against its running statistics").
+LOSS_FRAME_EVIDENCE = ("contour", "motion", "occluded", "appearance", "jump_pred")
+LOSS_EVIDENCE = LOSS_FRAME_EVIDENCE + tuple(f"{name}_avg" for name in LOSS_FRAME_EVIDENCE)
+LOSS_EVIDENCE_DECAY = 0.5
+# One row per model, [intercept, one weight per LOSS_EVIDENCE]; the confidence is the least of the models' p(frame
+# right). Row 0 reads the frame alone (the weights of 20cb01f, fitted when the Cauchy loss on the motion rows came: a
+# loss that starts in this frame); row 1 also the running averages (fitted at 2026-11-29 on the calibration sequences:
+# a loss that has lasted). Alone, row 1 left the first lost frame of a sequence less often LOST (README, "Knowing when
+# it is lost").
+LOSS_WEIGHTS = ((-3.432, 20.073, 1.809, 12.357, -5.943, 0.294, 0.0, 0.0, 0.0, 0.0, 0.0),
+                (-3.506, 1.805, -0.737, 8.361, -7.675, 0.073, 23.472, 5.522, 1.293, 2.751, 0.059))
 
 # The flow pyramid's coarsest level at the working resolution (px, short side). With the default 16 a 96 px crop
 # had 3 levels, one fewer than the native crops it replaced, and the prediction did not reach a 20 px / 12° frame
@@ -301,8 +312,11 @@ class TrackerParams(eqx.Module):
             toward the prediction for the whole frame.
         lines: the correspondence-line modality's parameters (`jaxtrack.cues.lines.LineParams`, M3T's defaults).
         line_learning_rate: rate of its colour-histogram update per frame (M3T: 0.2).
-        loss_weights: (1 + len(LOSS_EVIDENCE),) logistic weights of the calibrated confidence (`LOSS_WEIGHTS`):
-            confidence = 1 − σ(w₀ + w · evidence) where it applies (`TrackerConfig.calibrated_confidence`).
+        loss_weights: (K, 1 + len(LOSS_EVIDENCE)) K logistic models of the calibrated confidence (`LOSS_WEIGHTS`;
+            one row (1 + len(LOSS_EVIDENCE),) is one model): confidence = min_k 1 − σ(w_k0 + w_k · evidence) where
+            it applies (`TrackerConfig.calibrated_confidence`).
+        loss_evidence_decay: a of the running average of the frames' loss evidence (`TrackerState
+            .loss_evidence_average`, the second half of `FrameResult.loss_evidence`; `LOSS_EVIDENCE_DECAY`).
         uncertain_confidence, lost_confidence: a calibrated confidence below these is UNCERTAIN / LOST (0.5: the
             frame is more likely beyond 5 cm / 5° than not).
         flow_structure: k of the flow's structure factor g = λ_min / (λ_min + k σ_n² + 1) on eq. 8's confidence
@@ -347,6 +361,7 @@ class TrackerParams(eqx.Module):
     lines: LineParams = eqx.field(default_factory=line_params)
     line_learning_rate: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(0.2))
     loss_weights: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(LOSS_WEIGHTS))
+    loss_evidence_decay: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(LOSS_EVIDENCE_DECAY))
     flow_structure: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(-1.0))
     flow_limb_slope: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(-1.0))
     rows_per_px: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(0.0))
@@ -400,6 +415,8 @@ class TrackerState(eqx.Module):
         occluder_depth: (C, H, W) depth (mm) of the other objects of a joint run at their latest poses
             (`JointTracker` sets it before each step; inf where none), None when one object is tracked; the
             line modality leaves out the lines it hides (`FrameContext.occluder_depth`).
+        loss_evidence_average: (len(LOSS_FRAME_EVIDENCE),) the running average of the frames' loss evidence up to t
+            (`LOSS_EVIDENCE_DECAY`; zeros at `Tracker.start` and after a recovery, a new start); None reads as zeros.
     """
 
     T_world_root: jax.Array
@@ -410,6 +427,7 @@ class TrackerState(eqx.Module):
     appearance: AppearanceModel
     modalities: tuple
     occluder_depth: jax.Array | None = None
+    loss_evidence_average: jax.Array | None = None
 
 
 class FrameResult(eqx.Module):
@@ -420,7 +438,8 @@ class FrameResult(eqx.Module):
         status: int32 `Status`: OK, UNCERTAIN, LOST (from the confidence), OUT_OF_VIEW, RENDER_OVERFLOW (re-plan and
             redo), ...
         confidence: [0, 1] evidence that the pose is right: with `TrackerConfig.calibrated_confidence` the
-            calibrated p(frame within 5 cm / 5°) of `loss_evidence`; else the silhouette agreement of segmentation
+            calibrated p(frame within 5 cm / 5°) of `loss_evidence` (the least of `TrackerParams.loss_weights`'
+            models); else the silhouette agreement of segmentation
             and model (level set), the contour modality's own agreement, or the motion inliers.
         iou: (C,) agreement of the segmentation with the model silhouette at the final pose per camera.
         counts: (C, M) correspondences with weight per camera and configured cue (`TrackerConfig.cue_names`) in the
@@ -438,7 +457,9 @@ class FrameResult(eqx.Module):
         loss_evidence: (len(LOSS_EVIDENCE),) what the calibrated confidence reads: 1 − the contour modality's
             agreement, 1 − motion_inliers (0 without motion rows), the largest occluded fraction and appearance
             distance over the cameras (0 when not measured), and the rotation (°/10) from the motion prediction
-            to the final pose (0 without a prediction): the refinement had to overrule the motion cues.
+            to the final pose (0 without a prediction): the refinement had to overrule the motion cues
+            (`LOSS_FRAME_EVIDENCE`); then the running average of these over the frames up to t+1
+            (`TrackerState.loss_evidence_average` after this frame).
     """
 
     T_world_root: jax.Array
@@ -796,13 +817,19 @@ def track_step(
         agreement = inliers
     agreement = jnp.clip(agreement, 0.0, 1.0)
     jump = jnp.where(predicted, rotation_error_deg(T_new[:3, :3], T_pred[:3, :3]) / 10.0, 0.0)  # no prediction: none
-    loss_evidence = jnp.stack([
+    frame_evidence = jnp.stack([
         1.0 - agreement, motion_disagreement, jnp.max(occluded_fraction), jnp.maximum(jnp.max(appearance_distance), 0.0),
         jump,
     ]).astype(dtype)
+    previous = (jnp.zeros_like(frame_evidence) if state.loss_evidence_average is None
+                else state.loss_evidence_average.astype(dtype))
+    decay = params.loss_evidence_decay.astype(dtype)
+    evidence_average = decay * previous + (1.0 - decay) * frame_evidence
+    loss_evidence = jnp.concatenate([frame_evidence, evidence_average])
     if config.calibrated_confidence():
-        w = params.loss_weights.astype(dtype)
-        confidence = jax.nn.sigmoid(-(w[0] + jnp.dot(w[1:], loss_evidence)))  # 1 − p(frame beyond 5 cm / 5°)
+        w = jnp.atleast_2d(params.loss_weights.astype(dtype))  # (models, 1 + len(LOSS_EVIDENCE))
+        # the least of the models' 1 − p(frame beyond 5 cm / 5°)
+        confidence = jnp.min(jax.nn.sigmoid(-(w[:, 0] + w[:, 1:] @ loss_evidence)))
         quality = jnp.where(confidence < params.lost_confidence, Status.LOST,
                             jnp.where(confidence < params.uncertain_confidence, Status.UNCERTAIN, Status.OK))
     else:
@@ -826,7 +853,8 @@ def track_step(
     if fused is not None:
         counts = jnp.stack([_counts(fused, num_cams, m.cue) for m in modalities], -1).astype(jnp.int32)
     new_state = TrackerState(T_new, theta_new, frames_in.astype(state.images.dtype), data_weight, visible, appearance,
-                             modality_states, occluder_depth=state.occluder_depth)
+                             modality_states, occluder_depth=state.occluder_depth,
+                             loss_evidence_average=evidence_average)
     result = FrameResult(
         T_world_root=T_new, theta=theta_new, T_pred=T_pred, theta_pred=theta_pred, status=status.astype(jnp.int32),
         confidence=confidence, iou=iou, counts=counts, motion_inliers=inliers,

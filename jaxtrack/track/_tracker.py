@@ -61,6 +61,8 @@ from ._keyframes import KeyframeModel, _rotation_deg
 from ._recovery import recover_pose
 from ._step import (
     LOSS_EVIDENCE,
+    LOSS_EVIDENCE_DECAY,
+    LOSS_FRAME_EVIDENCE,
     LOSS_WEIGHTS,
     FrameResult,
     TrackerConfig,
@@ -319,6 +321,7 @@ def default_params(
         lines=line_params(dtype),
         line_learning_rate=device(0.2),
         loss_weights=device(LOSS_WEIGHTS),
+        loss_evidence_decay=device(LOSS_EVIDENCE_DECAY),
         uncertain_confidence=device(0.5),
         lost_confidence=device(0.25),
         flow_structure=device(FLOW_STRUCTURE),
@@ -738,8 +741,12 @@ class Tracker:
         return TrackerState(
             T_world_root=T, theta=theta, images=to_device(self._frames_as_state(frames)),
             data_weight=to_device(np.ones((self.num_cameras, H, W), self.dtype)), visible=sil, appearance=appearance,
-            modalities=states, occluder_depth=occluder_depth,
+            modalities=states, occluder_depth=occluder_depth, loss_evidence_average=self._no_loss_evidence(),
         )
+
+    def _no_loss_evidence(self) -> jax.Array:
+        """(len(LOSS_FRAME_EVIDENCE),) zeros: `TrackerState.loss_evidence_average` of a start (the pose is known)."""
+        return to_device(np.zeros((len(LOSS_FRAME_EVIDENCE),), self.dtype))
 
     def _initial_appearance_args(self, frames, T, theta, offsets=None, crop_shape=None, scales=None) -> tuple:
         """The arguments of `_initial_appearance_jit`: silhouettes and appearance at the first pose, observed on the
@@ -773,7 +780,7 @@ class Tracker:
         state_like = TrackerState(
             T_world_root=T, theta=theta, images=self._frames_as_state(frames),
             data_weight=np.ones((self.num_cameras, H, W), self.dtype), visible=sil_like[0], appearance=sil_like[1],
-            modalities=states_like, occluder_depth=occluder_depth)
+            modalities=states_like, occluder_depth=occluder_depth, loss_evidence_average=self._no_loss_evidence())
         saved, self.host_cache = self.host_cache, {}
         try:
             host_like = self.host_inputs(state_like, frames)  # frame t+1's shape: the first frame's
@@ -1167,8 +1174,10 @@ class Tracker:
         visible = np.zeros((self.num_cameras, H, W), bool)  # the SIFT mask of "frame t" (= t+1): the found box
         for c, (x0, y0, x1, y1) in enumerate(np.clip(np.nan_to_num(boxes), 0, [W - 1, H - 1, W - 1, H - 1]).astype(int)):
             visible[c, y0:y1 + 1, x0:x1 + 1] = on_screen[c]
-        restart = eqx.tree_at(lambda s: (s.T_world_root, s.images, s.data_weight, s.visible), state,
-                              (T_found, frames_j, jnp.ones_like(state.data_weight), jnp.asarray(visible)))
+        # a new start from the found pose: the running loss evidence starts over, as at `start`
+        restart = eqx.tree_at(lambda s: (s.T_world_root, s.images, s.data_weight, s.visible, s.loss_evidence_average),
+                              state, (T_found, frames_j, jnp.ones_like(state.data_weight), jnp.asarray(visible),
+                                      self._no_loss_evidence()), is_leaf=lambda x: x is None)
         host_cache = copy.deepcopy(self.host_cache)  # what the step from the found pose detects is kept only if taken
         new_state, result, _ = self._run_step(restart, frames, frames_j, offsets, params, crop_shape, scales)
         info["windows"] = (offsets, crop_shape, scales)
