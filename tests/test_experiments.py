@@ -140,26 +140,43 @@ def test_track_presets_quick_m3t(track_smoke):
 
 def test_loss_detection_calibration_and_report():
     """The calibration of experiments/loss_detection.py without tracking: the logistic fit recovers known weights
-    from frames drawn under them, and the report scores the tracker's statuses and the refit against the truth."""
+    from frames drawn under them, the two models (the frame's evidence alone, and with the running averages) take
+    the tracker's layout, and the report scores the tracker's statuses and the refit against the truth; the
+    re-analysis (--analyse) recomputes the averages for each decay as the tracker does and cross-validates them."""
     from jaxtrack._status import Status
 
     ld = _load("loss_detection")
     rng = np.random.default_rng(0)
-    w_true = np.array([-2.0, 3.0, 1.0, 8.0, 4.0, 1.0])
+    n = len(ld.FEATURES)
+    scale = np.resize([0.5, 1, 0.5, 0.5, 2], n)
+    w_true = np.array([-4.0, 3.0, 1.0, 4.0, 2.0, 0.5, 2.0, 1.0, 2.0, 1.0, 0.5])  # intercept, frame, averages
     rows = []
     for _ in range(20000):
-        features = dict(zip(ld.FEATURES, rng.uniform(0, 1, len(ld.FEATURES)) * [0.5, 1, 0.5, 0.5, 2], strict=True))
+        features = dict(zip(ld.FEATURES, rng.uniform(0, 1, n) * scale, strict=True))
         p = 1 / (1 + np.exp(-(w_true[0] + np.dot(w_true[1:], list(features.values())))))
         failed = bool(rng.random() < p)
         rows.append({**features, "failed": failed, "rot_deg": 10.0 if failed else 1.0, "trans_mm": 1.0,
                      "confidence": 1 - p, "status": int(Status.LOST if p > 0.75 else Status.UNCERTAIN if p > 0.5 else Status.OK)})
     w = ld.fit_logistic(ld.design(rows), np.array([r["failed"] for r in rows], float), l2=0.0)
-    np.testing.assert_allclose(w, w_true, atol=0.5)  # 20000 Bernoulli draws: standard errors 0.05-0.2
-    text = ld.report("cmd", 1.0, ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0)), [("c", rows[:10000])], [("e", rows[10000:])], w)
+    np.testing.assert_allclose(w, w_true, atol=0.5)  # 20000 Bernoulli draws: standard errors 0.05-0.3
+    models = ld.fit_models(rows[:10000])
+    frame_columns = 1 + len(ld.LOSS_FRAME_EVIDENCE)
+    assert models.shape == (2, n + 1) and not np.any(models[0, frame_columns:]) and np.all(models[1, frame_columns:] != 0)
+    text = ld.report("cmd", 1.0, ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0)), [("c", rows[:10000])], [("e", rows[10000:])], models)
     line = next(t for t in text.splitlines() if t.startswith("| **all** |"))
     cells = [c.strip() for c in line.strip("|").split("|")]
     flagged = sum(r["status"] != int(Status.OK) for r in rows[10000:])
     assert int(cells[3]) == flagged and all(0.0 <= float(c) <= 1.0 for c in cells[4:])
+
+    few = [dict(rows[i], **{f: float(i + 1) for f in ld.LOSS_FRAME_EVIDENCE}) for i in range(3)]
+    averaged = ld.with_averages([("s", few)], 0.5)[0][1]
+    assert [r[f"{ld.LOSS_FRAME_EVIDENCE[0]}_avg"] for r in averaged] == [0.5, 1.25, 2.125]  # from zeros: a·avg + (1−a)·frame
+    saved = {"features": list(ld.FEATURES), "calibration": [(f"c{i}", rows[500 * i:500 * (i + 1)]) for i in range(12)],
+             "evaluation": [("e", rows[10000:11000])]}
+    analysis = ld.analyse(saved, "cmd")
+    table = [t for t in analysis.splitlines() if t.startswith(("| the frame alone", "| with the averages"))]
+    assert len(table) == 1 + len(ld.DECAYS)
+    assert all(0.0 < float(t.split("|")[2]) < 1.0 for t in table)  # cross-validated log-losses
 
 
 def test_recovery_report_compares_the_modes():

@@ -78,7 +78,7 @@ REGION_MODALITIES = ("levelset", "lines")
 # The evidence of a lost frame (`FrameResult.loss_evidence`, in this order) and the logistic models that turn it
 # into p(frame beyond 5 cm / 5°), fitted by experiments/loss_detection.py on its calibration sequences (other seeds,
 # objects and motions than the sequences it is evaluated on). The frame's own evidence comes first, then its running
-# average over the frames before (`TrackerState.loss_evidence_average`: a · average + (1 − a) · frame, a =
+# average over the frames up to this one (`TrackerState.loss_evidence_average`: a · average + (1 − a) · frame, a =
 # LOSS_EVIDENCE_DECAY, zero at `Tracker.start`): a pose that drifts off slowly shows weak evidence on many frames in a
 # row (issue 24's "against its running statistics").
 LOSS_FRAME_EVIDENCE = ("contour", "motion", "occluded", "appearance", "jump_pred")
@@ -317,8 +317,8 @@ class TrackerParams(eqx.Module):
             it applies (`TrackerConfig.calibrated_confidence`).
         loss_evidence_decay: a of the running average of the frames' loss evidence (`TrackerState
             .loss_evidence_average`, the second half of `FrameResult.loss_evidence`; `LOSS_EVIDENCE_DECAY`).
-        uncertain_confidence, lost_confidence: a calibrated confidence below these is UNCERTAIN / LOST (0.5: the
-            frame is more likely beyond 5 cm / 5° than not).
+        uncertain_confidence, lost_confidence: a calibrated confidence below these is UNCERTAIN / LOST (0.5: one of
+            the models finds the frame more likely beyond 5 cm / 5° than not).
         flow_structure: k of the flow's structure factor g = λ_min / (λ_min + k σ_n² + 1) on eq. 8's confidence
             (`jaxtrack.cues.flow.structure_confidence`: the image must pin the flow); negative: off (the paper's c).
         flow_limb_slope: where the structure factor is on, no structure counts within 2 px of the limbs of the render
@@ -438,9 +438,9 @@ class FrameResult(eqx.Module):
         status: int32 `Status`: OK, UNCERTAIN, LOST (from the confidence), OUT_OF_VIEW, RENDER_OVERFLOW (re-plan and
             redo), ...
         confidence: [0, 1] evidence that the pose is right: with `TrackerConfig.calibrated_confidence` the
-            calibrated p(frame within 5 cm / 5°) of `loss_evidence` (the least of `TrackerParams.loss_weights`'
-            models); else the silhouette agreement of segmentation
-            and model (level set), the contour modality's own agreement, or the motion inliers.
+            lowest of the calibrated models' p(frame within 5 cm / 5°) of `loss_evidence` (`TrackerParams
+            .loss_weights`; conservative: either model's doubt counts); else the silhouette agreement of
+            segmentation and model (level set), the contour modality's own agreement, or the motion inliers.
         iou: (C,) agreement of the segmentation with the model silhouette at the final pose per camera.
         counts: (C, M) correspondences with weight per camera and configured cue (`TrackerConfig.cue_names`) in the
             refinement's last round (with `TrackerParams.motion_late_factor` 0 the motion cues read 0 there).
@@ -828,6 +828,9 @@ def track_step(
     loss_evidence = jnp.concatenate([frame_evidence, evidence_average])
     if config.calibrated_confidence():
         w = jnp.atleast_2d(params.loss_weights.astype(dtype))  # (models, 1 + len(LOSS_EVIDENCE))
+        if w.ndim != 2 or w.shape[1] != 1 + loss_evidence.shape[0]:
+            raise ValueError(f"TrackerParams.loss_weights must be (K, {1 + loss_evidence.shape[0]}) or "
+                             f"({1 + loss_evidence.shape[0]},): [intercept, one per LOSS_EVIDENCE] per model, got {w.shape}")
         # the least of the models' 1 − p(frame beyond 5 cm / 5°)
         confidence = jnp.min(jax.nn.sigmoid(-(w[:, 0] + w[:, 1:] @ loss_evidence)))
         quality = jnp.where(confidence < params.lost_confidence, Status.LOST,
