@@ -743,6 +743,10 @@ def test_an_injected_jump_is_lost_then_recovered(lines_sift):
             statuses.append(jt.Status(int(result.status)).name)
             errors.append(float(rotation_error_deg(np.asarray(result.T_world_root)[:3, :3], truth[k][:3, :3])))
             searched.append(None if info["recovery"] is None else {key: info["recovery"][key] for key in ("source", "pnp_inliers")})
+            if k == 2:  # a recovery is a new start: the running loss evidence starts over from the found pose's frame
+                n = len(jt.track._step.LOSS_FRAME_EVIDENCE)
+                decay = float(tracker.params_for(tracker.crop_shape).loss_evidence_decay)
+                restarted = (np.asarray(state.loss_evidence_average), (1.0 - decay) * np.asarray(result.loss_evidence)[:n])
     finally:
         vars(tracker).clear()
         vars(tracker).update(saved)
@@ -751,6 +755,7 @@ def test_an_injected_jump_is_lost_then_recovered(lines_sift):
     assert searched[0]["pnp_inliers"] >= 12, searched
     assert statuses == ["RECOVERED", "OK"], statuses
     assert max(errors) < 5.0, errors
+    np.testing.assert_allclose(*restarted, rtol=1e-5, atol=1e-7)
 
 
 @pytest.mark.xdist_group("lines_sift")
