@@ -93,6 +93,10 @@ def main(argv=None):
     ap.add_argument("--median", type=int, default=c.median, help="median filter side (0 = off, 3, 5)")
     ap.add_argument("--median-every-warp", dest="median_every_warp", action=argparse.BooleanOptionalAction,
                     default=c.median_every_warp, help="median after every warp instead of after every level")
+    ap.add_argument("--shared-levels-from", type=int, default=c.shared_levels_from,
+                    help="pyramid levels from this one on share one compiled level (FlowConfig.shared_levels_from; "
+                         "0 = every level its own copy, the benchmark's timings): the same flow to rounding, compiled "
+                         "faster")
     args = ap.parse_args(argv)
     # One OpenCV thread, as in the reference figures of ../shared/data/README.md; OpenCV's idle worker
     # threads otherwise compete with XLA's for the two cores and slowed jaxtrack by ~2x in this script.
@@ -101,7 +105,7 @@ def main(argv=None):
     params = FlowEnergyParams(jnp.asarray(args.alpha), jnp.asarray(args.gamma), jnp.asarray(1e-3), True)
     config = FlowConfig(
         eta=args.eta, warps=args.warps, lagged=args.lagged, sor_iters=args.sor, presmooth_sigma=args.sigma, median=args.median,
-        median_every_warp=args.median_every_warp,
+        median_every_warp=args.median_every_warp, shared_levels_from=args.shared_levels_from,
     )
     names = ("RubberWhale",) if args.quick else MIDDLEBURY
     rows, tiles = [], []
@@ -131,7 +135,9 @@ def main(argv=None):
         f"({cv2.getNumThreads()} threads). Grey frames."),
         (f"jaxtrack: α = {args.alpha:g}, γ = {args.gamma:g}, ε = 0.001, robust smoothness; η = {config.eta}, "
         f"{config.warps} warps/level, {config.lagged} lagged iterations x {config.sor_iters} SOR sweeps, "
-        f"pre-smoothing σ = {config.presmooth_sigma}, median filter {median_text}, float32. Seconds exclude compilation (one warm-up call per frame size)."),
+        f"pre-smoothing σ = {config.presmooth_sigma}, median filter {median_text}"
+        f"{f', pyramid levels from {config.shared_levels_from} on one compiled level' if config.shared_levels_from else ''}"
+        f", float32. Seconds exclude compilation (one warm-up call per frame size)."),
         "",
         "| sequence | size | jaxtrack EPE | jaxtrack AAE | jaxtrack s | DIS EPE | DIS AAE | DIS s | Farneback EPE | Farneback AAE | Farneback s |",
         "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
