@@ -53,8 +53,8 @@ def pytest_configure(config):
         config.stash[_cache_owner] = os.environ[_CACHE_ENV]
     jax.config.update("jax_compilation_cache_dir", os.environ[_CACHE_ENV])
     # Every program goes to the shared cache, not only those that took over a second to compile (jax's default; the
-    # product's `jaxtrack.enable_compilation_cache` does the same): the suite compiles thousands of small programs,
-    # many needed on both workers, or again in a worker after `_bounded_mappings` cleared its caches. Measured with
+    # product's `jaxtrack.enable_compilation_cache` does the same): the suite compiles many small programs,
+    # some needed on both workers, or again in a worker after `_bounded_mappings` cleared its caches. Measured with
     # `-n 2` on 2026-12-02, the two settings alternated: the solver, Lie, geometry, image and flow-energy tests 400 →
     # 341 s, the flow-solver, SIFT and render tests 267 → 243 s (this setting run first there).
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
