@@ -293,8 +293,11 @@ def test_a_closed_outward_mesh_hides_its_back_faces_and_culling_them_renders_the
                                patch_sizes=(32,), cull_backfaces=cull) for cull in (False, True)}
     assert all(p.tile_faces > 0 for p in plans.values())  # the box's faces take the tile pool
     assert plans[True].capacities[0] < plans[False].capacities[0]  # culling drops the back faces before placing
+    from jaxtrack.render._raster import _render_jit  # one compiled program per plan (op by op: 40 s here alone)
+
+    none = jnp.zeros((0,), T.dtype)
     for cam in cams:
-        plain, culled = (render(scene, cam, T, plan=plans[cull]) for cull in (False, True))
+        plain, culled = (_render_jit(scene, cam, T, none, None, plans[cull]) for cull in (False, True))
         assert np.array_equal(np.asarray(plain.face_id), np.asarray(culled.face_id))
         assert np.array_equal(np.asarray(plain.depth), np.asarray(culled.depth))
         assert int(np.sum(np.asarray(plain.face_id) >= len(tor.faces))) > 1000  # the box shows
