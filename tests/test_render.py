@@ -153,7 +153,9 @@ def test_overflow_is_reported_and_renderer_replans():
     mesh = torus_mesh()
     cam, _, _ = _camera([0, -250, -350])
     tiny = jt.render.RasterPlan(patch_sizes=(8,), capacities=(16,))
-    out = render(mesh, cam, jnp.eye(4), plan=tiny)
+    from jaxtrack.render._raster import _render_jit  # the compiled program `render` traces (op by op: 250 compiles)
+
+    out = _render_jit(mesh, cam, jnp.eye(4), jnp.zeros((0,), jnp.float32), None, tiny)
     assert bool(out.overflow) and int(out.status) == jt.Status.RENDER_OVERFLOW
     with pytest.raises(ValueError, match="RasterPlan"):
         render(mesh, cam, jnp.eye(4))
@@ -169,8 +171,6 @@ def test_overflow_is_reported_and_renderer_replans():
     with pytest.raises(ValueError, match="theta"):
         renderer(jnp.eye(4), jnp.zeros(2))
     # Inside jit a non-finite pose is a status, not an exception (the renderer's compiled program).
-    from jaxtrack.render._raster import _render_jit
-
     nan_pose = jnp.full((4, 4), jnp.nan, jnp.float32)
     bad = _render_jit(mesh, cam, nan_pose, jnp.zeros((0,), jnp.float32), None, renderer.plan)
     assert int(bad.status) == jt.Status.INVALID_INPUT
