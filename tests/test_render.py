@@ -8,6 +8,10 @@ import pytest
 
 import jaxtrack as jt
 from jaxtrack.render import box_mesh, face_extents, make_mesh, plan_raster, render, torus_mesh
+
+# The compiled program of one plan that `Renderer` calls: `render` outside jit runs op by op (hundreds of small compiles,
+# 40 s for the culling test alone here), so tests that render a fixed plan call this instead.
+from jaxtrack.render._raster import _render_jit
 from jaxtrack.synth import look_at
 
 K = np.array([[600.0, 0, 319.5], [0, 600.0, 239.5], [0, 0, 1]])
@@ -133,8 +137,6 @@ def test_faces_spill_into_larger_classes():
     assert min(near_plan.patch_sizes) > min(far_plan.patch_sizes)  # the far faces have classes the near plan lacks
     far_ext = face_extents(mesh, far_cam, jnp.eye(4))
     assert sum(near_plan.capacities) >= int((far_ext > 0).sum())  # the near plan holds that many faces in all
-    from jaxtrack.render._raster import _render_jit  # one compiled program per plan (op by op: a minute)
-
     none = jnp.zeros((0,), jnp.float32)
     spilled = _render_jit(mesh, far_cam, jnp.eye(4), none, None, near_plan)
     exact = _render_jit(mesh, far_cam, jnp.eye(4), none, None, far_plan)
@@ -153,8 +155,6 @@ def test_overflow_is_reported_and_renderer_replans():
     mesh = torus_mesh()
     cam, _, _ = _camera([0, -250, -350])
     tiny = jt.render.RasterPlan(patch_sizes=(8,), capacities=(16,))
-    from jaxtrack.render._raster import _render_jit  # the compiled program `render` traces (op by op: 250 compiles)
-
     out = _render_jit(mesh, cam, jnp.eye(4), jnp.zeros((0,), jnp.float32), None, tiny)
     assert bool(out.overflow) and int(out.status) == jt.Status.RENDER_OVERFLOW
     with pytest.raises(ValueError, match="RasterPlan"):
@@ -293,8 +293,6 @@ def test_a_closed_outward_mesh_hides_its_back_faces_and_culling_them_renders_the
                                patch_sizes=(32,), cull_backfaces=cull) for cull in (False, True)}
     assert all(p.tile_faces > 0 for p in plans.values())  # the box's faces take the tile pool
     assert plans[True].capacities[0] < plans[False].capacities[0]  # culling drops the back faces before placing
-    from jaxtrack.render._raster import _render_jit  # one compiled program per plan (op by op: 40 s here alone)
-
     none = jnp.zeros((0,), T.dtype)
     for cam in cams:
         plain, culled = (_render_jit(scene, cam, T, none, None, plans[cull]) for cull in (False, True))
