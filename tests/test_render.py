@@ -8,10 +8,6 @@ import pytest
 
 import jaxtrack as jt
 from jaxtrack.render import box_mesh, face_extents, make_mesh, plan_raster, render, torus_mesh
-
-# The compiled program of one plan that `Renderer` calls: `render` outside jit runs op by op (hundreds of small compiles,
-# 40 s for the culling test alone here), so tests that render a fixed plan call this instead.
-from jaxtrack.render._raster import _render_jit
 from jaxtrack.synth import look_at
 
 K = np.array([[600.0, 0, 319.5], [0, 600.0, 239.5], [0, 0, 1]])
@@ -137,9 +133,8 @@ def test_faces_spill_into_larger_classes():
     assert min(near_plan.patch_sizes) > min(far_plan.patch_sizes)  # the far faces have classes the near plan lacks
     far_ext = face_extents(mesh, far_cam, jnp.eye(4))
     assert sum(near_plan.capacities) >= int((far_ext > 0).sum())  # the near plan holds that many faces in all
-    none = jnp.zeros((0,), jnp.float32)
-    spilled = _render_jit(mesh, far_cam, jnp.eye(4), none, None, near_plan)
-    exact = _render_jit(mesh, far_cam, jnp.eye(4), none, None, far_plan)
+    spilled = render(mesh, far_cam, jnp.eye(4), plan=near_plan)
+    exact = render(mesh, far_cam, jnp.eye(4), plan=far_plan)
     assert not bool(spilled.overflow) and int(spilled.status) == jt.Status.OK
     np.testing.assert_array_equal(np.asarray(spilled.face_id), np.asarray(exact.face_id))
     np.testing.assert_array_equal(np.asarray(spilled.depth), np.asarray(exact.depth))
@@ -148,14 +143,14 @@ def test_faces_spill_into_larger_classes():
     short = jt.render.RasterPlan(near_plan.patch_sizes, near_plan.capacities[:-1] + (0,))
     near_ext = face_extents(mesh, near_cam, jnp.eye(4))
     assert (near_ext > near_plan.patch_sizes[-2]).any()
-    assert bool(_render_jit(mesh, near_cam, jnp.eye(4), none, None, short).overflow)
+    assert bool(render(mesh, near_cam, jnp.eye(4), plan=short).overflow)
 
 
 def test_overflow_is_reported_and_renderer_replans():
     mesh = torus_mesh()
     cam, _, _ = _camera([0, -250, -350])
     tiny = jt.render.RasterPlan(patch_sizes=(8,), capacities=(16,))
-    out = _render_jit(mesh, cam, jnp.eye(4), jnp.zeros((0,), jnp.float32), None, tiny)
+    out = render(mesh, cam, jnp.eye(4), plan=tiny)
     assert bool(out.overflow) and int(out.status) == jt.Status.RENDER_OVERFLOW
     with pytest.raises(ValueError, match="RasterPlan"):
         render(mesh, cam, jnp.eye(4))
@@ -170,9 +165,9 @@ def test_overflow_is_reported_and_renderer_replans():
         renderer(jnp.full((4, 4), jnp.nan))
     with pytest.raises(ValueError, match="theta"):
         renderer(jnp.eye(4), jnp.zeros(2))
-    # Inside jit a non-finite pose is a status, not an exception (the renderer's compiled program).
+    # A non-finite pose is a status of the compiled program, not an exception.
     nan_pose = jnp.full((4, 4), jnp.nan, jnp.float32)
-    bad = _render_jit(mesh, cam, nan_pose, jnp.zeros((0,), jnp.float32), None, renderer.plan)
+    bad = render(mesh, cam, nan_pose, plan=renderer.plan)
     assert int(bad.status) == jt.Status.INVALID_INPUT
 
 
@@ -217,6 +212,26 @@ def test_renderers_of_one_mesh_share_a_compilation():
     assert first.plan == second.plan
     assert eqx.debug.get_num_traces(_raster._render_body) == before + 1
     assert int(a.silhouette.sum()) > 0 and not np.array_equal(np.asarray(a.depth), np.asarray(b.depth))
+
+
+def test_eager_render_is_the_renderers_compiled_program():
+    """Called outside a trace, `render` runs the one compiled program per plan that `Renderer` runs (not op by
+    op), with the same output as inside `jax.jit`; another pose or an explicit zero Θ traces nothing new."""
+    from jaxtrack.render import _raster
+
+    mesh = box_mesh((90, 50, 30))
+    cam, _, _ = _camera([40, -120, -380])
+    renderer = jt.render.Renderer(mesh, cam, cull_backfaces=True)
+    first = renderer(jnp.eye(4))
+    before = eqx.debug.get_num_traces(_raster._render_body)
+    T = jt.se3_exp(jnp.array([2.0, 0, 0, 0, 0.01, 0]))
+    eager = render(mesh, cam, T, plan=renderer.plan)
+    again = render(mesh, cam, np.eye(4), jnp.zeros((0,)), plan=renderer.plan)  # numpy pose, explicit empty Θ
+    assert eqx.debug.get_num_traces(_raster._render_body) == before
+    inline = jax.jit(lambda T: render(mesh, cam, T, plan=renderer.plan))(T)
+    np.testing.assert_array_equal(np.asarray(eager.face_id), np.asarray(inline.face_id))
+    np.testing.assert_allclose(np.asarray(eager.depth), np.asarray(inline.depth), rtol=1e-6)
+    np.testing.assert_array_equal(np.asarray(again.depth), np.asarray(first.depth))
 
 
 def test_make_mesh_errors():
@@ -293,9 +308,8 @@ def test_a_closed_outward_mesh_hides_its_back_faces_and_culling_them_renders_the
                                patch_sizes=(32,), cull_backfaces=cull) for cull in (False, True)}
     assert all(p.tile_faces > 0 for p in plans.values())  # the box's faces take the tile pool
     assert plans[True].capacities[0] < plans[False].capacities[0]  # culling drops the back faces before placing
-    none = jnp.zeros((0,), T.dtype)
     for cam in cams:
-        plain, culled = (_render_jit(scene, cam, T, none, None, plans[cull]) for cull in (False, True))
+        plain, culled = (render(scene, cam, T, plan=plans[cull]) for cull in (False, True))
         assert np.array_equal(np.asarray(plain.face_id), np.asarray(culled.face_id))
         assert np.array_equal(np.asarray(plain.depth), np.asarray(culled.depth))
         assert int(np.sum(np.asarray(plain.face_id) >= len(tor.faces))) > 1000  # the box shows

@@ -178,7 +178,11 @@ def render(
     plan: RasterPlan | None = None,
     vertex_depth_tolerance: float = 1e-3,
 ) -> RenderOutput:
-    """Rasterise `mesh` at pose (T_world_root, Θ) in one camera. Jittable.
+    """Rasterise `mesh` at pose (T_world_root, Θ) in one camera. Jittable, vmappable, differentiable.
+
+    Inside a trace (jit, vmap, grad) it traces inline. Called eagerly it runs as one compiled
+    program per (mesh size, camera size, plan), the one `Renderer` uses, instead of op by op (which
+    dispatches some hundred small programs per call).
 
     Args:
         mesh: triangle mesh (V vertices, F faces) with per-vertex parts.
@@ -188,12 +192,24 @@ def render(
         plan: class capacities (`plan_raster`); `Renderer` makes and updates one for you.
         vertex_depth_tolerance: relative depth slack of the vertex visibility test.
     """
-    model = rigid_model(mesh.vertices.dtype) if model is None else model
-    theta = jnp.zeros((model.num_joints,), mesh.vertices.dtype) if theta is None else theta
-    width, height = camera.width, camera.height
     if plan is None:
         # Without a plan every face would need a full-image patch: F x H x W candidates.
         raise ValueError("render needs a RasterPlan: plan_raster(face_extents(...)) or use Renderer")
+    if not _is_traced(mesh, camera, T_world_root, theta, model):
+        return _render_compiled(mesh, camera, T_world_root, theta, model, plan, vertex_depth_tolerance)
+    return _render_traced(mesh, camera, T_world_root, theta, model, plan, vertex_depth_tolerance)
+
+
+def _is_traced(*trees) -> bool:
+    """Whether any array leaf of `trees` is a tracer (we are inside jit, vmap or a derivative)."""
+    return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(trees))
+
+
+def _render_traced(mesh, camera, T_world_root, theta, model, plan, vertex_depth_tolerance):
+    """`render`'s body, traced inline (see `render`)."""
+    model = rigid_model(mesh.vertices.dtype) if model is None else model
+    theta = jnp.zeros((model.num_joints,), mesh.vertices.dtype) if theta is None else theta
+    width, height = camera.width, camera.height
     p_cam, px, T_cam_parts = _project_vertices(mesh, camera, model, T_world_root, theta)
     px_f = px[mesh.faces]  # (F, 3, 2)
     z_f = p_cam[mesh.faces, 2]  # (F, 3)
@@ -495,14 +511,28 @@ def merge_plans(old: RasterPlan, new: RasterPlan) -> RasterPlan:
 
 
 @eqx.debug.assert_max_traces(max_traces=None)  # counts traces (`eqx.debug.get_num_traces`), never fails
-def _render_body(mesh, camera, T_world_root, theta, model, plan):
-    return render(mesh, camera, T_world_root, theta, model, plan)
+def _render_body(mesh, camera, T_world_root, theta, model, plan, vertex_depth_tolerance=1e-3):
+    return _render_traced(mesh, camera, T_world_root, theta, model, plan, vertex_depth_tolerance)
 
 
 # One jitted program for every Renderer: the plan (all static fields) is part of the cache key and
 # the mesh and camera are arguments, so renderers of same-sized meshes with the same plan share a
 # compilation instead of each closing over its own.
 _render_jit = eqx.filter_jit(_render_body)
+
+
+def _render_compiled(mesh, camera, T_world_root, theta, model, plan, vertex_depth_tolerance=1e-3) -> RenderOutput:
+    """`render` through `_render_jit`, its arguments in one canonical form (one cache entry per plan).
+
+    The pose and joint angles become arrays of the mesh's dtype (zeros (J,) when None) and the
+    tolerance a float, so an eager `render` and a `Renderer` of the same mesh, camera and plan hit
+    the same compiled program.
+    """
+    dtype = mesh.vertices.dtype
+    num_joints = 0 if model is None else model.num_joints
+    theta = jnp.zeros((num_joints,), dtype) if theta is None else jnp.asarray(theta, dtype)
+    return _render_jit(mesh, camera, jnp.asarray(T_world_root, dtype), theta, model, plan,
+                       float(vertex_depth_tolerance))
 
 
 def replan(
@@ -584,10 +614,10 @@ class Renderer:
             raise ValueError(f"Renderer: theta must be a finite ({num_joints},) array, got shape {th_np.shape}")
         if self.plan is None:
             self._replan(T_world_root, theta)
-        out = _render_jit(self.mesh, self.camera, T_world_root, theta, self.model, self.plan)
+        out = _render_compiled(self.mesh, self.camera, T_world_root, theta, self.model, self.plan)
         if bool(out.overflow):
             self._replan(T_world_root, theta)
-            out = _render_jit(self.mesh, self.camera, T_world_root, theta, self.model, self.plan)
+            out = _render_compiled(self.mesh, self.camera, T_world_root, theta, self.model, self.plan)
         if throw and bool(out.overflow):
             raise StatusError(Status.RENDER_OVERFLOW, "Renderer: still overflowing after re-planning")
         return out
