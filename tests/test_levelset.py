@@ -351,10 +351,15 @@ def test_segmentation_iou_homogeneous_object(shared_data):
     T0 = _perturb(T_true, 10.0)
     sil0 = np.asarray(Renderer(mesh, cam)(jnp.asarray(T0)).face_id >= 0)
     gt = seq["object_mask"][0][0]
-    feats = feature_channels(jnp.asarray(seq["images"][0][0], jnp.float64))
-    phi0 = silhouette_sdf(jnp.asarray(sil0)).astype(jnp.float64)
     params = region_params((h, w), jnp.float64)
-    dens = local_densities(feats, region_membership(phi0), params.rho, params.kappa, params.sigma_min, 4)
+
+    @jax.jit  # one program, not one per operation
+    def prepare(image, silhouette):
+        feats = feature_channels(image)
+        phi0 = silhouette_sdf(silhouette).astype(jnp.float64)
+        return feats, phi0, local_densities(feats, region_membership(phi0), params.rho, params.kappa, params.sigma_min, 4)
+
+    feats, phi0, dens = prepare(jnp.asarray(seq["images"][0][0], jnp.float64), jnp.asarray(sil0))
     phi = phi0
     run = jax.jit(lambda p, d: segment(feats, phi0, p, d, params, _RC(levelset_iterations=20)))
     for _ in range(5):
