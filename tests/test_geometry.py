@@ -94,8 +94,8 @@ def test_forward_kinematics_derivatives_agree_with_finite_differences():
     model = demo_chain(4, branches=2, dtype=jnp.float64)
     theta0 = jnp.array([0.2, -0.4, 0.9, 0.1])
     T_root = se3_exp(jnp.array([1.0, 2.0, 800.0, 0.3, -0.2, 0.1]))
-    f = lambda th: part_transforms(model, T_root, th)
-    fwd, rev = jax.jacfwd(f)(theta0), jax.jacrev(f)(theta0)
+    f = jax.jit(lambda th: part_transforms(model, T_root, th))  # jitted: one program each, not one per operation
+    fwd, rev = jax.jit(jax.jacfwd(f))(theta0), jax.jit(jax.jacrev(f))(theta0)
     eps = 1e-6
     fd = np.stack([(f(theta0.at[j].add(eps)) - f(theta0.at[j].add(-eps))) / (2 * eps) for j in range(4)], -1)
     np.testing.assert_allclose(fwd, rev, atol=1e4 * EPS)
