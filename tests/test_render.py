@@ -1,5 +1,7 @@
 """Rasteriser: exactness against an independent ray caster (embree via trimesh), plans, jit."""
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -53,19 +55,25 @@ def _mixed_mesh():
 
 
 @pytest.mark.parametrize(
-    "name, mesh_fn, eye, cull",
+    "name, mesh_fn, eye, cull, dense",
     [
-        ("torus", torus_mesh, [0, -250, -350], False),
-        ("torus-culled", torus_mesh, [0, -250, -350], True),
-        ("box-culled", lambda: box_mesh((160, 70, 80)), [120, -160, -300], True),
-        ("mixed", _mixed_mesh, [30, -20, -420], False),
+        ("torus", torus_mesh, [0, -250, -350], False, None),
+        ("torus-culled", torus_mesh, [0, -250, -350], True, None),
+        ("box-culled", lambda: box_mesh((160, 70, 80)), [120, -160, -300], True, False),
+        ("box-culled-dense", lambda: box_mesh((160, 70, 80)), [120, -160, -300], True, True),
+        ("mixed", _mixed_mesh, [30, -20, -420], False, None),
     ],
 )
-def test_matches_ray_caster(name, mesh_fn, eye, cull):
+def test_matches_ray_caster(name, mesh_fn, eye, cull, dense):
+    """Through the plan's patches (the torus and the mixed mesh: `render`'s own choice) and every face at every pixel
+    (`RasterPlan.dense`) for the box."""
     mesh = mesh_fn()
     cam, R, t = _camera(eye)
     T = jnp.eye(4)
     plan = plan_raster(face_extents(mesh, cam, T, cull_backfaces=cull), cull_backfaces=cull)
+    if dense is None:
+        assert not jt.render.dense_is_cheaper(plan, mesh.num_faces, 640, 480)
+    plan = dataclasses.replace(plan, dense=dense)
     out = jax.jit(lambda T: render(mesh, cam, T, plan=plan))(T)
     assert not bool(out.overflow) and int(out.status) == jt.Status.OK
     _assert_matches_ray_caster(out, mesh, R, t)
@@ -185,15 +193,17 @@ def test_faces_larger_than_every_patch_class_are_tiled():
     # Only the tiles a triangle overlaps: fewer than its bounding box's (a triangle is half its box).
     assert 0 < tiles < faces * (1280 // 128) * (720 // 128 + 1)
     renderer = jt.render.Renderer(mesh, cam, cull_backfaces=True)
-    out = renderer(jnp.eye(4))
+    renderer(jnp.eye(4))
     assert renderer.plan.tile_faces >= faces and renderer.plan.tile_capacity >= tiles
+    plan = dataclasses.replace(renderer.plan, dense=False)  # the tiles, not the dense path this box would take
+    out = render(mesh, cam, jnp.eye(4), plan=plan)
     assert not bool(out.overflow) and int(out.status) == jt.Status.OK
     assert np.asarray(out.silhouette).mean() > 0.6
     _assert_matches_ray_caster(out, mesh, R, t, 1280, 720, K_HD)
     # A plan without enough tiles reports the overflow instead of dropping faces silently.
-    plan = renderer.plan
     short = jt.render.RasterPlan(
-        plan.patch_sizes, plan.capacities, cull_backfaces=True, tile_faces=plan.tile_faces, tile_capacity=tiles - 1
+        plan.patch_sizes, plan.capacities, cull_backfaces=True, tile_faces=plan.tile_faces, tile_capacity=tiles - 1,
+        dense=False,
     )
     out_short = jax.jit(lambda T: render(mesh, cam, T, plan=short))(jnp.eye(4))
     assert bool(out_short.overflow) and int(out_short.status) == jt.Status.RENDER_OVERFLOW
@@ -232,6 +242,42 @@ def test_eager_render_is_the_renderers_compiled_program():
     np.testing.assert_array_equal(np.asarray(eager.face_id), np.asarray(inline.face_id))
     np.testing.assert_allclose(np.asarray(eager.depth), np.asarray(inline.depth), rtol=1e-6)
     np.testing.assert_array_equal(np.asarray(again.depth), np.asarray(first.depth))
+
+
+def test_dense_path_draws_what_the_planned_path_draws():
+    """`RasterPlan.dense` (every face at every pixel, no scatter) against the plan's patches and tiles, on a box (whole,
+    culled, partly off-screen, a face crossing the near plane), a two-part chain with its joint turned and the torus:
+    the same face at every pixel, the same depth to rounding, the same surface points, parts and visible vertices."""
+    small_K = np.array([[150.0, 0, 79.5], [0, 150.0, 59.5], [0, 0, 1]])
+    a = box_mesh((100, 40, 40))
+    chain = make_mesh(np.concatenate([np.asarray(a.vertices) - [50, 0, 0], np.asarray(a.vertices) + [50, 0, 0]]),
+                      np.concatenate([np.asarray(a.faces), np.asarray(a.faces) + 8]), vertex_part=np.r_[np.zeros(8), np.ones(8)])
+    cases = [  # (mesh, model, theta, eye, pose shift, cull)
+        (box_mesh((90, 50, 30)), None, None, [40, -120, -380], [0, 0, 0], False),
+        (box_mesh((90, 50, 30)), None, None, [40, -120, -380], [0, 0, 0], True),
+        (box_mesh((90, 50, 30)), None, None, [40, -120, -380], [200, 0, 0], True),  # partly off-screen
+        (box_mesh((90, 50, 30)), None, None, [0, 0, -10], [0, 0, 0], False),  # the camera inside the box: faces cross its near plane
+        (chain, jt.chain_model([-1, 0], [(0, 1, 0)], [(0, 0, 0)]), jnp.array([0.7]), [0, -90, -400], [0, 0, 0], False),
+        (torus_mesh(), None, None, [0, -250, -350], [0, 0, 0], False),
+    ]
+    clipped = []
+    for mesh, model, theta, eye, shift, cull in cases:
+        R, t = look_at(eye)
+        cam = jt.make_camera(small_K, 160, 120, R, t)
+        T = jt.se3_exp(jnp.array([*shift, 0.0, 0.0, 0.0]))
+        base = plan_raster(face_extents(mesh, cam, T, theta, model, cull_backfaces=cull), cull_backfaces=cull)
+        planned = render(mesh, cam, T, theta, model, dataclasses.replace(base, dense=False))
+        dense = render(mesh, cam, T, theta, model, dataclasses.replace(base, dense=True))
+        assert not bool(planned.overflow) and not bool(dense.overflow)
+        np.testing.assert_array_equal(np.asarray(dense.face_id), np.asarray(planned.face_id))
+        np.testing.assert_allclose(np.asarray(dense.depth), np.asarray(planned.depth), rtol=1e-6)
+        np.testing.assert_allclose(np.asarray(dense.p_model), np.asarray(planned.p_model), atol=1e-3)
+        np.testing.assert_array_equal(np.asarray(dense.part_id), np.asarray(planned.part_id))
+        np.testing.assert_array_equal(np.asarray(dense.vertex_visible), np.asarray(planned.vertex_visible))
+        assert int(dense.near_clipped) == int(planned.near_clipped)
+        assert 0 < int(planned.silhouette.sum()) <= 160 * 120, (eye, shift)
+        clipped.append(int(planned.near_clipped))
+    assert clipped[3] > 0 and clipped[0] == 0  # the close-up case does drop faces at the near plane
 
 
 def test_make_mesh_errors():

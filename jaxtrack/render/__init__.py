@@ -13,6 +13,7 @@ from ._raster import TILE_SIZE as TILE_SIZE
 from ._raster import RasterPlan as RasterPlan
 from ._raster import Renderer as Renderer
 from ._raster import RenderOutput as RenderOutput
+from ._raster import dense_is_cheaper as dense_is_cheaper
 from ._raster import face_extents as face_extents
 from ._raster import merge_plans as merge_plans
 from ._raster import plan_raster as plan_raster
