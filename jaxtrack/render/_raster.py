@@ -141,6 +141,23 @@ def _edge(ax, ay, bx, by, px, py):
     return (bx - ax) * (py - ay) - (by - ay) * (px - ax)
 
 
+def _triangle_depths(tri, inv_z_tri, pxf, pyf, mask):
+    """Perspective-correct depth (C, P) of triangles `tri` (C, 3, 2) px with vertex 1/z `inv_z_tri` (C, 3) at the
+    pixel centres (pxf, pyf) (broadcast with (C, 1) to (C, P)); +inf outside its triangle, for a degenerate
+    triangle, behind the camera and where `mask` (broadcast to (C, P)) is False. 1/z is affine in screen space."""
+    ax, ay = tri[:, 0, 0:1], tri[:, 0, 1:2]
+    bx, by = tri[:, 1, 0:1], tri[:, 1, 1:2]
+    cx, cy = tri[:, 2, 0:1], tri[:, 2, 1:2]
+    area = _edge(ax, ay, bx, by, cx, cy)
+    safe_area = jnp.where(jnp.abs(area) > 1e-12, area, 1.0)
+    l0 = _edge(bx, by, cx, cy, pxf, pyf) / safe_area
+    l1 = _edge(cx, cy, ax, ay, pxf, pyf) / safe_area
+    l2 = 1.0 - l0 - l1
+    inside = (l0 >= 0) & (l1 >= 0) & (l2 >= 0) & (jnp.abs(area) > 1e-12) & mask
+    inv_z = l0 * inv_z_tri[:, 0:1] + l1 * inv_z_tri[:, 1:2] + l2 * inv_z_tri[:, 2:3]
+    return jnp.where(inside & (inv_z > 0), 1.0 / jnp.where(inv_z > 0, inv_z, 1.0), jnp.inf)
+
+
 def _rasterize_class(px_f, inv_z_f, faces_idx, corner, size: int, width: int, height: int):
     """Candidates of one patch class: flat pixel index, depth and face (masked by coverage).
 
@@ -158,18 +175,8 @@ def _rasterize_class(px_f, inv_z_f, faces_idx, corner, size: int, width: int, he
     gx = jnp.broadcast_to(gx, (num, size, size)).reshape(num, -1)
     gy = jnp.broadcast_to(gy, (num, size, size)).reshape(num, -1)
     pxf, pyf = gx.astype(px_f.dtype), gy.astype(px_f.dtype)
-    ax, ay = tri[:, 0, 0:1], tri[:, 0, 1:2]
-    bx, by = tri[:, 1, 0:1], tri[:, 1, 1:2]
-    cx, cy = tri[:, 2, 0:1], tri[:, 2, 1:2]
-    area = _edge(ax, ay, bx, by, cx, cy)
-    safe_area = jnp.where(jnp.abs(area) > 1e-12, area, 1.0)
-    l0 = _edge(bx, by, cx, cy, pxf, pyf) / safe_area
-    l1 = _edge(cx, cy, ax, ay, pxf, pyf) / safe_area
-    l2 = 1.0 - l0 - l1
-    inside = (l0 >= 0) & (l1 >= 0) & (l2 >= 0) & (jnp.abs(area) > 1e-12)
-    inside = inside & face_ok[:, None] & (gx < width) & (gy < height)
-    inv_z = l0 * iz[:, 0:1] + l1 * iz[:, 1:2] + l2 * iz[:, 2:3]
-    depth = jnp.where(inside & (inv_z > 0), 1.0 / jnp.where(inv_z > 0, inv_z, 1.0), jnp.inf)
+    depth = _triangle_depths(tri, iz, pxf, pyf, face_ok[:, None] & (gx < width) & (gy < height))
+    inside = jnp.isfinite(depth)
     flat = jnp.where(inside, gy * width + gx, 0)
     return flat.reshape(-1), depth.reshape(-1), jnp.broadcast_to(f[:, None], flat.shape).reshape(-1)
 
@@ -202,18 +209,7 @@ def _rasterize_dense(px_f, inv_z_f, valid, width: int, height: int):
     path does not overflow; it never overflows.
     """
     gy, gx = jnp.meshgrid(jnp.arange(height, dtype=px_f.dtype), jnp.arange(width, dtype=px_f.dtype), indexing="ij")
-    pxf, pyf = gx.reshape(1, -1), gy.reshape(1, -1)
-    ax, ay = px_f[:, 0, 0:1], px_f[:, 0, 1:2]
-    bx, by = px_f[:, 1, 0:1], px_f[:, 1, 1:2]
-    cx, cy = px_f[:, 2, 0:1], px_f[:, 2, 1:2]
-    area = _edge(ax, ay, bx, by, cx, cy)
-    safe_area = jnp.where(jnp.abs(area) > 1e-12, area, 1.0)
-    l0 = _edge(bx, by, cx, cy, pxf, pyf) / safe_area
-    l1 = _edge(cx, cy, ax, ay, pxf, pyf) / safe_area
-    l2 = 1.0 - l0 - l1
-    inside = (l0 >= 0) & (l1 >= 0) & (l2 >= 0) & (jnp.abs(area) > 1e-12) & valid[:, None]
-    inv_z = l0 * inv_z_f[:, 0:1] + l1 * inv_z_f[:, 1:2] + l2 * inv_z_f[:, 2:3]
-    depth_f = jnp.where(inside & (inv_z > 0), 1.0 / jnp.where(inv_z > 0, inv_z, 1.0), jnp.inf)  # (F, H·W)
+    depth_f = _triangle_depths(px_f, inv_z_f, gx.reshape(1, -1), gy.reshape(1, -1), valid[:, None])  # (F, H·W)
     depth = jnp.min(depth_f, axis=0)
     faces = jnp.arange(px_f.shape[0], dtype=jnp.int32)[:, None]
     face_id = jnp.max(jnp.where(jnp.isfinite(depth_f) & (depth_f <= depth[None]), faces, -1), axis=0)
