@@ -575,7 +575,7 @@ def merge_plans(old: RasterPlan, new: RasterPlan) -> RasterPlan:
 
 
 @eqx.debug.assert_max_traces(max_traces=None)  # counts traces (`eqx.debug.get_num_traces`), never fails
-def _render_body(mesh, camera, T_world_root, theta, model, plan, vertex_depth_tolerance=1e-3):
+def _render_body(mesh, camera, T_world_root, theta, model, plan, vertex_depth_tolerance):
     return _render_traced(mesh, camera, T_world_root, theta, model, plan, vertex_depth_tolerance)
 
 
