@@ -430,7 +430,7 @@ def _check_writable(path, what: str) -> None:
 def _prepare_tracking(args, seq, out):
     """Everything checked before any compilation: views, object, first pose, outputs. Returns the kwargs of
     `track_sequence` and the overlay writer (or None)."""
-    from jaxtrack.io import load_trimesh, prepare_output_file
+    from jaxtrack.io import load_mesh_arrays, prepare_output_file
     from jaxtrack.track import OverlayRecorder, OverlayWriter
 
     n_views = len(seq.views)
@@ -484,8 +484,7 @@ def _prepare_tracking(args, seq, out):
     else:
         if args.joint_limits:
             raise ValueError(f"--joint-limits: obj_id {obj_id} is rigid ({model_path.name}); limits come from a URDF")
-        tm = load_trimesh(model_path, seq.model_scale(obj_id))  # an unreadable or empty mesh fails here, named
-        vertices, faces = tm.vertices, tm.faces
+        vertices, faces = load_mesh_arrays(model_path, seq.model_scale(obj_id))  # an unreadable or empty mesh fails here, named
     recorder = None
     if args.video is not None:
         H, W = view0.height, view0.width
@@ -504,7 +503,7 @@ def _prepare_tracking(args, seq, out):
 
 def _prepare_joint_tracking(args, seq, out, obj_ids: list[int]):
     """As `_prepare_tracking` for several rigid objects tracked jointly (`track_objects`)."""
-    from jaxtrack.io import load_trimesh, prepare_output_file
+    from jaxtrack.io import load_mesh_arrays, prepare_output_file
     from jaxtrack.track import JointOverlayRecorder, OverlayWriter
 
     refused = [flag for flag, on in (("--reset-on-failure", args.reset_on_failure), ("--recover", getattr(args, "recover", None)),
@@ -540,8 +539,7 @@ def _prepare_joint_tracking(args, seq, out, obj_ids: list[int]):
     _check_writable(out.with_name(out.stem + ".frames.jsonl"), "-o/--out")
     objects = []
     for o in obj_ids:
-        tm = load_trimesh(seq.model_paths[o], seq.model_scale(o))  # an unreadable or empty mesh fails here, named
-        objects.append((tm.vertices, tm.faces))
+        objects.append(load_mesh_arrays(seq.model_paths[o], seq.model_scale(o)))  # an unreadable or empty mesh fails here, named
     recorder = None
     if args.video is not None:
         writer = OverlayWriter(args.video, (view0.height, view0.width * len(views)), fps=args.fps, what="--video")

@@ -1,6 +1,7 @@
 """BOP sequence I/O, results CSV, mesh loading; the tea-box sequence renders onto the box."""
 
 import json
+import os
 
 import cv2
 import jax.numpy as jnp
@@ -333,3 +334,59 @@ def test_outputs_on_a_file_system_that_cannot_be_written_are_refused_before_the_
     assert (tmp_path / "kept.csv").read_text() == "old"
     folder = prepare_output_folder(tmp_path / "frames", "--video")
     assert folder.is_dir() and not any(folder.iterdir())
+
+
+def test_mesh_geometry_is_cached_by_content_and_read_back_without_trimesh(tmp_path, monkeypatch):
+    """`load_mesh_arrays` keeps what trimesh read, keyed by the file's bytes and the scale: a new process reads the
+    entry without importing trimesh (a second of a warm start); a changed file or another scale is read again."""
+    import subprocess
+    import sys
+
+    import trimesh
+
+    from jaxtrack.io import load_mesh_arrays, mesh_cache_dir
+
+    monkeypatch.setenv("JAXTRACK_CACHE", str(tmp_path / "cache"))
+    path = tmp_path / "box.ply"
+    trimesh.creation.box(extents=(60, 40, 30)).export(path)
+    vertices, faces = load_mesh_arrays(path)
+    read = trimesh.load(str(path), process=False)
+    np.testing.assert_array_equal(vertices, read.vertices)
+    np.testing.assert_array_equal(faces, read.faces)
+    assert vertices.dtype == np.float64 and faces.dtype == np.int64
+    assert len(list(mesh_cache_dir().glob("mesh-*.npz"))) == 1
+    code = ("import sys, numpy as np\nfrom jaxtrack.io import load_mesh\n"
+            f"m = load_mesh({str(path)!r})\n"
+            "assert 'trimesh' not in sys.modules, 'the cached mesh imported trimesh'\n"
+            "np.save(sys.argv[1], np.asarray(m.vertices, np.float64))\n")
+    subprocess.run([sys.executable, "-c", code, str(tmp_path / "v.npy")], check=True, timeout=120,
+                   env=dict(os.environ, JAXTRACK_CACHE=str(tmp_path / "cache")))
+    np.testing.assert_allclose(np.load(tmp_path / "v.npy"), vertices.astype(np.float32))
+    doubled, _ = load_mesh_arrays(path, scale=2.0)  # another scale: another entry
+    np.testing.assert_allclose(doubled, 2.0 * vertices)
+    trimesh.creation.box(extents=(10, 20, 30)).export(path)  # the same name, other bytes
+    changed, _ = load_mesh_arrays(path)
+    np.testing.assert_allclose(np.ptp(changed, axis=0), (10, 20, 30))
+    assert len(list(mesh_cache_dir().glob("mesh-*.npz"))) == 3
+    monkeypatch.setenv("JAXTRACK_MESH_CACHE", "0")
+    trimesh.creation.box(extents=(5, 5, 5)).export(path)
+    np.testing.assert_allclose(np.ptp(load_mesh_arrays(path)[0], axis=0), (5, 5, 5))
+    assert len(list(mesh_cache_dir().glob("mesh-*.npz"))) == 3  # nothing kept
+
+
+def test_keyframe_rays_hit_where_trimesh_embree_intersector_does():
+    """`MeshRays` (embree without trimesh) gives trimesh's first hits: the same rays, the same points."""
+    import trimesh
+    from trimesh.ray.ray_pyembree import RayMeshIntersector
+
+    from jaxtrack.track._keyframes import MeshRays
+
+    rng = np.random.default_rng(0)
+    for tm in (trimesh.creation.torus(40.0, 12.0), trimesh.creation.box(extents=(60, 40, 30))):
+        origins = rng.normal(size=(500, 3)) * 20 + np.array([0.0, 0.0, 300.0])
+        directions = rng.uniform(-0.6, 0.6, (500, 3)) * tm.extents - origins
+        loc, ray, _ = RayMeshIntersector(tm).intersects_location(origins, directions, multiple_hits=False)
+        ours, ours_ray = MeshRays(tm.vertices, tm.faces).first_hits(origins, directions)
+        assert 100 < len(ray) < 500
+        np.testing.assert_array_equal(np.sort(ours_ray), np.sort(ray))
+        np.testing.assert_allclose(ours[np.argsort(ours_ray)], loc[np.argsort(ray)], atol=1e-9)

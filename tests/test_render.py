@@ -329,6 +329,28 @@ def test_tile_overlap_never_misses_a_covered_pixel():
     assert hit.sum() < 1.1 * needed.sum() and hit.sum() < 0.5 * hit.size  # and few are tested in vain
 
 
+def test_connected_pieces_are_scipys_connected_components():
+    """The union-find behind `hides_its_back_faces` labels the pieces as scipy.sparse.csgraph does, each by its smallest
+    node (random graphs, a shuffled path: the longest chain of hooks, no edges)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    from jaxtrack.render._mesh import _connected_labels
+
+    rng = np.random.default_rng(0)
+    order = rng.permutation(3000)
+    graphs = [(n, rng.integers(0, n, m), rng.integers(0, n, m)) for n, m in ((10, 4), (500, 400), (4000, 6000))]
+    graphs += [(3000, order[:-1], order[1:]), (7, np.zeros(0, int), np.zeros(0, int))]
+    for n, a, b in graphs:
+        ours = _connected_labels(n, a, b)
+        count, theirs = connected_components(coo_matrix((np.ones(len(a)), (a, b)), shape=(n, n)), directed=False)
+        assert len(np.unique(ours)) == count
+        first = {}
+        for node in range(n):  # the smallest node of each of scipy's pieces is the label of the whole piece
+            first.setdefault(theirs[node], node)
+        np.testing.assert_array_equal(ours, [first[t] for t in theirs])
+
+
 def test_a_closed_outward_mesh_hides_its_back_faces_and_culling_them_renders_the_same():
     from jaxtrack.render import hides_its_back_faces
 

@@ -42,6 +42,8 @@ _EXPORTS = {
     "read_image": "_images",
     "write_image": "_images",
     "load_mesh": "_meshes",
+    "load_mesh_arrays": "_meshes",
+    "mesh_cache_dir": "_meshes",
     "RBOT_VARIANTS": "_rbot",
     "read_rbot_calibration": "_rbot",
     "read_rbot_poses": "_rbot",
@@ -116,7 +118,9 @@ if TYPE_CHECKING:  # static analysers and IDEs see the real definitions
     from ._images import read_image as read_image
     from ._images import write_image as write_image
     from ._meshes import load_mesh as load_mesh
+    from ._meshes import load_mesh_arrays as load_mesh_arrays
     from ._meshes import load_trimesh as load_trimesh
+    from ._meshes import mesh_cache_dir as mesh_cache_dir
     from ._mocap import Motion as Motion
     from ._mocap import Skeleton as Skeleton
     from ._mocap import bone_transforms as bone_transforms

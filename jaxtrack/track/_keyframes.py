@@ -4,8 +4,8 @@ a frame by matching them and PnP + RANSAC (host side, OpenCV and embree).
 A keyframe is taken where the pose is known or trusted: the first frame, and later frames reported OK whose
 rotation differs from every keyframe's by more than `min_angle_deg` (the object shows other faces), up to
 `max_keyframes` (the oldest after the first is replaced). Its keypoints inside the visible object region are lifted
-onto the mesh by casting their camera rays (embree through trimesh, in the model frame): each keeps its descriptor
-and its model point.
+onto the mesh by casting their camera rays (embree, in the model frame: `MeshRays`): each keeps its descriptor and
+its model point.
 
 `locate` detects SIFT in a region of a new frame, matches it against every keyframe's descriptors (Lowe's ratio
 test, conflicts dropped) and solves PnP with RANSAC (`cv2.solvePnPRansac`, EPnP, then Levenberg-Marquardt on the
@@ -52,6 +52,52 @@ class KeyframeConfig:
             raise ValueError("KeyframeConfig: ratio in (0, 1], reprojection_px > 0, min_angle_deg ≥ 0, region_growth ≥ 0")
 
 
+class MeshRays:
+    """First hits of rays on a triangle mesh, through embree (`embreex`, without trimesh: its import alone costs about
+    a second of a warm tracker's start).
+
+    As trimesh's embree intersector does: embree finds the hit triangle in float32 on the mesh moved to its bounding
+    box's corner and scaled to a 100-unit diagonal (for precision); the hit point is then the ray's intersection with
+    that triangle's plane in float64.
+
+    Args:
+        vertices: (V, 3) model frame; faces: (F, 3) vertex indices.
+    """
+
+    def __init__(self, vertices, faces):
+        from embreex import rtcore_scene
+        from embreex.mesh_construction import TriangleMesh
+
+        vertices, faces = np.asarray(vertices, np.float64), np.asarray(faces, np.int64)
+        self.origin = vertices.min(axis=0)
+        diagonal = float(np.linalg.norm(vertices.max(axis=0) - self.origin))
+        self.scale = 100.0 / diagonal if diagonal > 0 else 1.0
+        self.scene = rtcore_scene.EmbreeScene()
+        TriangleMesh(scene=self.scene, vertices=((vertices - self.origin) * self.scale).astype(np.float32),
+                     indices=faces.astype(np.int32))
+        corners = vertices[faces]  # (F, 3, 3)
+        self.plane_points = corners[:, 0]
+        normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        length = np.linalg.norm(normals, axis=1, keepdims=True)
+        self.plane_normals = normals / np.where(length > 0, length, 1.0)
+
+    def first_hits(self, origins, directions) -> tuple[np.ndarray, np.ndarray]:
+        """(m, 3) float64 first hit points and (m,) int64 indices of the rays (n, 3) origins + (n, 3) directions that
+        hit the mesh (rays along a hit triangle's plane are dropped)."""
+        origins, directions = np.asarray(origins, np.float64), np.asarray(directions, np.float64)
+        directions = directions / np.maximum(np.linalg.norm(directions, axis=1, keepdims=True), 1e-300)
+        if len(origins) == 0:
+            return np.zeros((0, 3)), np.zeros(0, np.int64)
+        face = self.scene.run(((origins - self.origin) * self.scale).astype(np.float32), directions.astype(np.float32))
+        ray = np.flatnonzero(face != -1)
+        n = self.plane_normals[face[ray]]
+        along = np.einsum("ij,ij->i", directions[ray], n)
+        ok = np.abs(along) > 1e-12
+        ray, n, along = ray[ok], n[ok], along[ok]
+        t = np.einsum("ij,ij->i", self.plane_points[face[ray]] - origins[ray], n) / along
+        return origins[ray] + t[:, None] * directions[ray], ray.astype(np.int64)
+
+
 @dataclasses.dataclass
 class Keyframe:
     """One keyframe: descriptors (n, 128) float32, model points (n, 3) (mm), the pose's rotation (3, 3) model → world."""
@@ -85,12 +131,9 @@ class KeyframeModel:
     """
 
     def __init__(self, vertices, faces, config: KeyframeConfig | None = None, sift: SiftConfig | None = None):
-        import trimesh
-        from trimesh.ray.ray_pyembree import RayMeshIntersector
-
         self.config = KeyframeConfig() if config is None else config
         self.sift = dataclasses.replace(SiftConfig() if sift is None else sift, max_side=0)
-        self.intersector = RayMeshIntersector(trimesh.Trimesh(np.asarray(vertices, np.float64), np.asarray(faces), process=False))
+        self.rays = MeshRays(vertices, faces)
         self.keyframes: list[Keyframe] = []
         self.tried: list[np.ndarray] = []  # rotations of every keyframe attempt (kept or not: no keypoints there)
 
@@ -118,7 +161,7 @@ class KeyframeModel:
             T_model_cam = np.linalg.inv(np.asarray(T_cam_world[c], np.float64) @ T)
             rays = _rays(xy, K[c], dist[c])  # camera frame
             origin = np.repeat(T_model_cam[:3, 3][None], len(rays), 0)
-            loc, index, _ = self.intersector.intersects_location(origin, rays @ T_model_cam[:3, :3].T, multiple_hits=False)
+            loc, index = self.rays.first_hits(origin, rays @ T_model_cam[:3, :3].T)
             if len(index):
                 desc.append(d[index])
                 pts.append(loc)
