@@ -59,6 +59,8 @@ def pytest_configure(config):
     # 341 s, the flow-solver, SIFT and render tests 267 → 243 s (this setting run first there).
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     os.environ["JAXTRACK_CACHE_DIR"] = os.environ[_CACHE_ENV]  # where `jaxtrack track` without --no-cache writes
+    # The meshes' geometry cache (`jaxtrack.io.mesh_cache_dir`) in the run's folder too, not the user's ~/.cache.
+    os.environ.setdefault("JAXTRACK_MESH_CACHE", os.path.join(os.environ[_CACHE_ENV], "meshes"))
 
 
 def pytest_unconfigure(config):

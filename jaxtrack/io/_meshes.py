@@ -2,9 +2,10 @@
 
 `import trimesh` takes about a second (it loads scipy.spatial and networkx), as much as a warm tracker's whole
 start. `load_mesh_arrays` (and `load_mesh`) keep what a file's geometry came to (vertices, faces) in
-`mesh_cache_dir()`, keyed by a sha256 of the file's bytes (and of the OBJ's material libraries), the scale and
-trimesh's version; a process that finds the entry reads it (milliseconds) and never imports trimesh. Formats whose
-geometry may sit in other files (glTF's external buffers, COLLADA, ...) are always read through trimesh.
+`mesh_cache_dir()`, keyed by a sha256 of the file's bytes, the scale and trimesh's version; a process that finds the
+entry reads it (milliseconds) and never imports trimesh. Formats whose geometry may sit in other files (glTF's external
+buffers, COLLADA, ...) are always read through trimesh; so is any file the cache cannot key or keep (unreadable, no
+cache folder), and an entry that cannot be read or does not hold a valid mesh is removed and made again.
 """
 
 from __future__ import annotations
@@ -12,7 +13,6 @@ from __future__ import annotations
 import hashlib
 import os
 import pathlib
-import re
 import tempfile
 from typing import TYPE_CHECKING
 
@@ -24,10 +24,10 @@ from ..render import Mesh, make_mesh
 if TYPE_CHECKING:
     import trimesh
 
-# Formats whose geometry is all in the file (an OBJ's material libraries are hashed with it: trimesh groups
-# faces by material); the cache is used for these only.
+# Formats whose geometry is all in the file; the cache is used for these only. (An OBJ's material library does not
+# change the vertices and faces trimesh reads: checked with the library present, missing and edited, trimesh 5.2.)
 CACHED_SUFFIXES = (".ply", ".stl", ".off", ".glb", ".obj")
-_CACHE_FORMAT = 1  # bump when what an entry holds, or how the geometry is read, changes
+_CACHE_FORMAT = 2  # bump when what an entry holds, or how the geometry is read, changes
 
 
 def load_trimesh(path: str | os.PathLike, scale: float = 1.0) -> trimesh.Trimesh:
@@ -71,63 +71,92 @@ def _checked_path(path, scale) -> pathlib.Path:
     return path
 
 
-def mesh_cache_dir() -> pathlib.Path:
-    """$JAXTRACK_CACHE/meshes if $JAXTRACK_CACHE is set, else ~/.cache/jaxtrack/meshes."""
-    env = os.environ.get("JAXTRACK_CACHE")
-    return (pathlib.Path(env) if env else pathlib.Path.home() / ".cache" / "jaxtrack") / "meshes"
+def mesh_cache_dir() -> pathlib.Path | None:
+    """Where `load_mesh_arrays` keeps geometry: $JAXTRACK_MESH_CACHE if it names a folder, else ~/.cache/jaxtrack/meshes;
+    None when $JAXTRACK_MESH_CACHE is 0 or there is no home folder to put it in."""
+    env = os.environ.get("JAXTRACK_MESH_CACHE", "")
+    if env == "0":
+        return None
+    if env:
+        return pathlib.Path(env)
+    try:
+        return pathlib.Path.home() / ".cache" / "jaxtrack" / "meshes"
+    except RuntimeError:  # no $HOME and no passwd entry (some containers)
+        return None
 
 
 def _cache_key(path: pathlib.Path, scale: float) -> str | None:
-    """The entry's name for this file and scale; None where the format is not cached."""
-    if path.suffix.lower() not in CACHED_SUFFIXES or os.environ.get("JAXTRACK_MESH_CACHE", "1") == "0":
+    """The entry's name for this file and scale; None where the format is not cached or the file cannot be read
+    (then `load_trimesh` reads it, and names the file in its error)."""
+    if path.suffix.lower() not in CACHED_SUFFIXES:
         return None
     from importlib.metadata import PackageNotFoundError, version
 
     try:
         trimesh_version = version("trimesh")
-    except PackageNotFoundError:
+        h = hashlib.sha256(path.read_bytes())
+    except (PackageNotFoundError, OSError):
         return None
-    data = path.read_bytes()
-    h = hashlib.sha256(data)
-    if path.suffix.lower() == ".obj":  # its material libraries decide how trimesh groups the faces
-        for name in re.findall(rb"^[ \t]*mtllib[ \t]+(.+?)[ \t]*$", data, flags=re.MULTILINE):
-            library = path.parent / name.decode("utf-8", "replace")
-            h.update(name + b"\0" + (library.read_bytes() if library.is_file() else b"<missing>"))
     h.update(f"|{path.suffix.lower()}|{float(scale)!r}|{trimesh_version}|{_CACHE_FORMAT}".encode())
     return h.hexdigest()[:40]
 
 
+def _read_entry(entry: pathlib.Path) -> tuple[np.ndarray, np.ndarray] | None:
+    """An entry's (vertices, faces) when it holds a valid mesh; None (and the entry removed) when it does not."""
+    try:
+        with np.load(entry) as data:
+            vertices, faces = np.asarray(data["vertices"], np.float64), np.asarray(data["faces"], np.int64)
+    except Exception:  # noqa: BLE001  (a damaged .npz raises EOFError, BadZipFile, ValueError, ...)
+        vertices = faces = np.zeros((0, 3))
+    if (vertices.ndim == 2 and vertices.shape[1] == 3 and len(vertices) and faces.ndim == 2 and faces.shape[1] == 3
+            and len(faces) and np.all(np.isfinite(vertices)) and faces.min() >= 0 and faces.max() < len(vertices)):
+        return vertices, faces
+    try:
+        entry.unlink()
+    except OSError:
+        pass
+    return None
+
+
+def _write_entry(entry: pathlib.Path, vertices: np.ndarray, faces: np.ndarray) -> None:
+    """Write an entry atomically (a reader sees the old entry, none, or the whole new one), readable by the folder's
+    other users; a cache that cannot be written only costs the next process the read."""
+    try:
+        entry.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=entry.parent, suffix=".npz.tmp")
+        try:
+            with os.fdopen(fd, "wb") as f:
+                np.savez(f, vertices=vertices, faces=faces)
+                f.flush()
+                os.fsync(f.fileno())
+            os.chmod(tmp, 0o644)  # mkstemp's 0600 would hide it from the folder's other users
+            os.replace(tmp, entry)
+        finally:
+            if os.path.exists(tmp):
+                os.remove(tmp)
+    except OSError:
+        pass
+
+
 def load_mesh_arrays(path: str | os.PathLike, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """(V, 3) float64 vertices (scaled by `scale`) and (F, 3) int64 faces of a mesh file, as `load_trimesh` reads
-    them, kept in `mesh_cache_dir()` ($JAXTRACK_MESH_CACHE=0: not kept) so that a later process skips trimesh.
+    them, kept in `mesh_cache_dir()` so that a later process skips trimesh.
 
     Raises:
         FileNotFoundError, ValueError: as `load_trimesh` (the same checks, the same messages).
     """
     path = _checked_path(path, scale)
-    key = _cache_key(path, scale)
-    entry = None if key is None else mesh_cache_dir() / f"mesh-{key}.npz"
+    folder = mesh_cache_dir()
+    key = None if folder is None else _cache_key(path, scale)
+    entry = None if key is None else folder / f"mesh-{key}.npz"
     if entry is not None and entry.is_file():
-        try:
-            with np.load(entry) as data:
-                return np.asarray(data["vertices"], np.float64), np.asarray(data["faces"], np.int64)
-        except (OSError, ValueError, KeyError):
-            pass  # unreadable: read the file again and write a new entry
+        cached = _read_entry(entry)
+        if cached is not None:
+            return cached
     tm = load_trimesh(path, scale)
     vertices, faces = np.asarray(tm.vertices, np.float64), np.asarray(tm.faces, np.int64)
     if entry is not None:
-        try:
-            entry.parent.mkdir(parents=True, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(dir=entry.parent, suffix=".npz.tmp")
-            try:
-                with os.fdopen(fd, "wb") as f:
-                    np.savez(f, vertices=vertices, faces=faces)
-                os.replace(tmp, entry)  # atomic: a reader sees the old entry, none, or the whole new one
-            finally:
-                if os.path.exists(tmp):
-                    os.remove(tmp)
-        except OSError:
-            pass  # a cache that cannot be written only costs the next process the read
+        _write_entry(entry, vertices, faces)
     return vertices, faces
 
 

@@ -87,8 +87,8 @@ def _connected_labels(n: int, a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
     Union-find in whole-array steps (host, numpy; scipy.sparse.csgraph does the same but its import costs a tenth
     of a warm start): every edge hooks the larger of its two roots onto the smaller, then paths are halved until every
-    node points at a root; repeated until both ends of every edge have one root (a few rounds: each at least halves
-    the pieces an edge still joins)."""
+    node points at a root; repeated until both ends of every edge have one root (each round removes at least one root;
+    measured: 10 rounds for a shuffled path of 3000 nodes, 5 for a grid)."""
     parent = np.arange(n, dtype=np.int64)
     a, b = np.asarray(a, np.int64), np.asarray(b, np.int64)
     while True:

@@ -52,6 +52,10 @@ class KeyframeConfig:
             raise ValueError("KeyframeConfig: ratio in (0, 1], reprojection_px > 0, min_angle_deg ≥ 0, region_growth ≥ 0")
 
 
+# Rays whose direction's cosine with the hit triangle's normal is at most this are dropped (trimesh's `planes_lines`).
+GRAZING_COSINE = 1e-5
+
+
 class MeshRays:
     """First hits of rays on a triangle mesh, through embree (`embreex`, without trimesh: its import alone costs about
     a second of a warm tracker's start).
@@ -83,8 +87,14 @@ class MeshRays:
 
     def first_hits(self, origins, directions) -> tuple[np.ndarray, np.ndarray]:
         """(m, 3) float64 first hit points and (m,) int64 indices of the rays (n, 3) origins + (n, 3) directions that
-        hit the mesh (rays along a hit triangle's plane are dropped)."""
+        hit the mesh; rays that graze the hit triangle (|cos| ≤ `GRAZING_COSINE` with its normal) are dropped.
+
+        Raises:
+            ValueError: origins and directions not both (n, 3)."""
         origins, directions = np.asarray(origins, np.float64), np.asarray(directions, np.float64)
+        if origins.shape != directions.shape or origins.ndim != 2 or origins.shape[1] != 3:
+            raise ValueError(f"MeshRays.first_hits: origins and directions must both be (n, 3), got {origins.shape} and "
+                             f"{directions.shape}")
         directions = directions / np.maximum(np.linalg.norm(directions, axis=1, keepdims=True), 1e-300)
         if len(origins) == 0:
             return np.zeros((0, 3)), np.zeros(0, np.int64)
@@ -92,7 +102,7 @@ class MeshRays:
         ray = np.flatnonzero(face != -1)
         n = self.plane_normals[face[ray]]
         along = np.einsum("ij,ij->i", directions[ray], n)
-        ok = np.abs(along) > 1e-12
+        ok = np.abs(along) > GRAZING_COSINE  # trimesh's bound: a grazing ray's float32 hit is no point to trust
         ray, n, along = ray[ok], n[ok], along[ok]
         t = np.einsum("ij,ij->i", self.plane_points[face[ray]] - origins[ray], n) / along
         return origins[ray] + t[:, None] * directions[ray], ray.astype(np.int64)
