@@ -13,12 +13,12 @@ from __future__ import annotations
 import hashlib
 import os
 import pathlib
-import tempfile
 from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
 
+from .._cache import write_npz_atomically
 from ..render import Mesh, make_mesh
 
 if TYPE_CHECKING:
@@ -118,26 +118,6 @@ def _read_entry(entry: pathlib.Path) -> tuple[np.ndarray, np.ndarray] | None:
     return None
 
 
-def _write_entry(entry: pathlib.Path, vertices: np.ndarray, faces: np.ndarray) -> None:
-    """Write an entry atomically (a reader sees the old entry, none, or the whole new one), readable by the folder's
-    other users; a cache that cannot be written only costs the next process the read."""
-    try:
-        entry.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=entry.parent, suffix=".npz.tmp")
-        try:
-            with os.fdopen(fd, "wb") as f:
-                np.savez(f, vertices=vertices, faces=faces)
-                f.flush()
-                os.fsync(f.fileno())
-            os.chmod(tmp, 0o644)  # mkstemp's 0600 would hide it from the folder's other users
-            os.replace(tmp, entry)
-        finally:
-            if os.path.exists(tmp):
-                os.remove(tmp)
-    except OSError:
-        pass
-
-
 def load_mesh_arrays(path: str | os.PathLike, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """(V, 3) float64 vertices (scaled by `scale`) and (F, 3) int64 faces of a mesh file, as `load_trimesh` reads
     them, kept in `mesh_cache_dir()` so that a later process skips trimesh.
@@ -156,7 +136,10 @@ def load_mesh_arrays(path: str | os.PathLike, scale: float = 1.0) -> tuple[np.nd
     tm = load_trimesh(path, scale)
     vertices, faces = np.asarray(tm.vertices, np.float64), np.asarray(tm.faces, np.int64)
     if entry is not None:
-        _write_entry(entry, vertices, faces)
+        try:
+            write_npz_atomically(entry, {"vertices": vertices, "faces": faces})
+        except OSError:
+            pass  # a cache that cannot be written only costs the next process the read
     return vertices, faces
 
 

@@ -30,13 +30,13 @@ import hashlib
 import json
 import os
 import pathlib
-import tempfile
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..._cache import write_npz_atomically
 from ..._device import to_device
 from ...geometry import Camera, se3_inverse, transform_points
 from ...render import PATCH_SIZES, Mesh, RasterPlan, RenderOutput, hides_its_back_faces, plan_raster, render
@@ -537,16 +537,7 @@ _FIELDS = ("directions", "points", "normals", "foreground_distance", "background
 
 def save_view_model(model: SparseViewModel, path) -> None:
     """Write a view model as .npz (atomically: a temporary file renamed into place)."""
-    path = pathlib.Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".npz.tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez(f, **{k: np.asarray(getattr(model, k)) for k in _FIELDS})
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+    write_npz_atomically(path, {k: np.asarray(getattr(model, k)) for k in _FIELDS})
 
 
 def load_view_model(path, dtype=jnp.float32) -> SparseViewModel:
