@@ -266,8 +266,12 @@ def worker(spec: dict) -> dict:
     t = time.perf_counter()
     state, result, info = tracker.step(state, frames(1))
     first_step_s = time.perf_counter() - t
+    import jaxtrack
+    import ml_dtypes
+
     out = {"imported_s": imported_s, "start_s": start_s, "first_step_s": first_step_s, "ready_s": time.time() - spec["launched"],
-           "crop": list(info["crop_shape"] or ())}
+           "crop": list(info["crop_shape"] or ()), "jaxtrack_from": str(pathlib.Path(jaxtrack.__file__).parent),
+           "ml_dtypes": ml_dtypes.__version__, "trimesh_imported": "trimesh" in sys.modules}
     if spec["mode"] == "warm":
         return out
     # The step compiled quickly for the first frame: the frames after it run that build while a background process
@@ -318,11 +322,12 @@ def worker(spec: dict) -> dict:
     return out
 
 
-def run_worker(spec: dict, timeout_s: float) -> dict:
-    """Launch `worker(spec)` in a fresh Python process and read back its JSON result."""
+def run_worker(spec: dict, timeout_s: float, env: dict | None = None) -> dict:
+    """Launch `worker(spec)` in a fresh Python process and read back its JSON result. `env`: variables set
+    for that process on top of this one's (e.g. a PYTHONPATH that puts another tree or package first)."""
     spec = dict(spec, launched=time.time())
     proc = subprocess.run([sys.executable, __file__, "--worker", json.dumps(spec)], check=False, capture_output=True, text=True,
-                          timeout=timeout_s, env=dict(os.environ, PYTHONUNBUFFERED="1"))
+                          timeout=timeout_s, env=dict(os.environ, PYTHONUNBUFFERED="1", **(env or {})))
     for line in proc.stdout.splitlines():
         if line.startswith("RESULT "):
             return json.loads(line[len("RESULT "):])
