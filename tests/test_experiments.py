@@ -320,3 +320,37 @@ def test_profile_step_refuses_too_few_frames_and_tables_by_share(capsys):
 
     rows = module.table(collections.Counter({"a.py:f:1": 3e6, "b.py:g:2": 9e6}), 3, 5, 12e6)
     assert rows[2] == "| 3.00 | 75.0 % | `b.py:g:2` |" and rows[3] == "| 1.00 | 25.0 % | `a.py:f:1` |"
+
+
+def test_warm_start_ab_reads_its_variants_and_pairs_the_rounds(tmp_path):
+    """experiments/warm_start_ab.py: a variant without '=' or with a missing folder is refused naming it; the table's
+    medians and the paired ratios come from the rounds as given, in the order of the variants."""
+    ab = _load("warm_start_ab")
+    with pytest.raises(SystemExit, match="LABEL=PYTHONPATH"):
+        ab.parse_variant("no-equals-sign")
+    with pytest.raises(SystemExit, match="does not exist"):
+        ab.parse_variant(f"old={tmp_path / 'missing'}")
+    assert ab.parse_variant(f" old ={tmp_path}") == ("old", str(tmp_path))
+    assert ab.variant_env("") == {}
+    assert ab.variant_env(str(tmp_path))["PYTHONPATH"].split(":")[0] == str(tmp_path)
+
+    def run(ready):
+        return {"ready_s": ready, "imported_s": ready / 2, "start_s": 0.5, "first_step_s": 0.5, "ml_dtypes": "x",
+                "trimesh_imported": False, "jaxtrack_from": "/j"}
+
+    warm = {("a", 1): [run(2.0), run(4.0), run(3.0)], ("b", 1): [run(1.0), run(3.0), run(1.5)]}
+    cold = {("a", 1): run(30.0), ("b", 1): run(20.0)}
+
+    class Args:
+        title, cues = "T", "all"
+
+    class Clock:
+        load_start = (0.0, 0.0, 0.0)
+
+        def elapsed_s(self):
+            return 1.0
+
+    text = ab.report(Args, "cmd", [("a", ""), ("b", "")], [1], cold, warm, Clock())
+    rows = {line.split(" | ")[0].strip("| "): line.split(" | ") for line in text.splitlines() if line.startswith(("| a ", "| b "))}
+    assert rows["a"][3] == "3.00" and rows["b"][3] == "1.50"  # medians of the rounds
+    assert "- b, 1 camera: [0.5, 0.75, 0.5]" in text
