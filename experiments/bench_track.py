@@ -266,8 +266,9 @@ def worker(spec: dict) -> dict:
     t = time.perf_counter()
     state, result, info = tracker.step(state, frames(1))
     first_step_s = time.perf_counter() - t
-    import jaxtrack
     import ml_dtypes
+
+    import jaxtrack
 
     out = {"imported_s": imported_s, "start_s": start_s, "first_step_s": first_step_s, "ready_s": time.time() - spec["launched"],
            "crop": list(info["crop_shape"] or ()), "jaxtrack_from": str(pathlib.Path(jaxtrack.__file__).parent),

@@ -25,14 +25,13 @@ import pathlib
 import shutil
 import sys
 import tempfile
-import time
 
 import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
-from bench_track import run_worker, write_bench_sequence  # noqa: E402
+from bench_track import run_worker, write_bench_sequence
 
-from jaxtrack.bench import command_line, report_header, save_text, start_experiment  # noqa: E402
+from jaxtrack.bench import command_line, report_header, save_text, start_experiment
 
 RESULTS = pathlib.Path(__file__).resolve().parent / "results"
 
@@ -107,12 +106,12 @@ def main(argv=None):
 
 
 def report(args, command, variants, cameras, cold, warm, clock) -> str:
-    med = lambda runs, key: float(np.median([r[key] for r in runs]))  # noqa: E731
+    med = lambda runs, key: float(np.median([r[key] for r in runs]))
     lines = [f"# {args.title}", "", *report_header(command, clock.load_start, os.getloadavg(), clock.elapsed_s()), "",
-             f"bench_track's textured box, 640x480, cues {args.cues}; each process fresh, launched by this script; each variant "
-             "with its own compile, view-model and mesh caches filled by its cold process; rounds alternate the variants.",
-             "", "| variant | cameras | first frame, warm (s), rounds | median | imports (s), median | start (s), median | "
-             "first step (s), median | ml_dtypes | trimesh imported | jaxtrack from |",
+             (f"bench_track's textured box, 640x480, cues {args.cues}; each process fresh, launched by this script; each variant "
+             "with its own compile, view-model and mesh caches filled by its cold process; rounds alternate the variants."),
+             "", ("| variant | cameras | first frame, warm (s), rounds | median | imports (s), median | start (s), median | "
+             "first step (s), median | ml_dtypes | trimesh imported | jaxtrack from |"),
              "|---|---:|---|---:|---:|---:|---:|---|---|---|"]
     for c in cameras:
         for label, _ in variants:
