@@ -299,15 +299,16 @@ def test_mesh_loader_names_empty_and_unreadable_files(tmp_path):
 
 
 def test_io_loads_opencv_and_trimesh_lazily():
-    """`import jaxtrack` (and the .flo functions) must not import OpenCV, trimesh or embree."""
+    """`import jaxtrack` (and the .flo functions, and the tracker) must not import OpenCV, trimesh or embree, nor
+    optimistix and lineax (the pose solver's reference backend, imported when a solve asks for it)."""
     import subprocess
     import sys
 
     code = (
-        "import sys, jaxtrack, jaxtrack.io\n"
+        "import sys, jaxtrack, jaxtrack.io, jaxtrack.track\n"
         "from jaxtrack.io import read_flo\n"
         "from jaxtrack.synth import demo_chain\n"
-        "heavy = [m for m in ('cv2', 'trimesh', 'embreex', 'skimage') if m in sys.modules]\n"
+        "heavy = [m for m in ('cv2', 'trimesh', 'embreex', 'skimage', 'optimistix', 'lineax') if m in sys.modules]\n"
         "assert not heavy, heavy\n"
         "from jaxtrack.io import read_sequence\n"
         "assert callable(read_sequence) and jaxtrack.io.load_mesh and 'read_image' in dir(jaxtrack.io)\n"

@@ -14,9 +14,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import lineax as lx
 import numpy as np
-import optimistix as optx
 
 from .._status import Status, check_status, first_failure, is_usable, status_where
 from ..geometry import (
@@ -544,6 +542,11 @@ def solve_pose(
         has_root_prior=pose_prior is not None, depths=depths, moments=moments,
     )
     if config.backend == "optimistix":
+        # Imported here: the reference backend, not the default; loading optimistix and lineax costs every process that
+        # imports jaxtrack 0.07-0.3 s otherwise (a fifth of `import jaxtrack` beyond jax and equinox).
+        import lineax as lx
+        import optimistix as optx
+
         sol = optx.least_squares(
             _weighted_residual,
             optx.LevenbergMarquardt(rtol=config.rtol, atol=config.atol, linear_solver=lx.QR()),
