@@ -354,3 +354,18 @@ def test_warm_start_ab_reads_its_variants_and_pairs_the_rounds(tmp_path):
     rows = {line.split(" | ")[0].strip("| "): line.split(" | ") for line in text.splitlines() if line.startswith(("| a ", "| b "))}
     assert rows["a"][3] == "3.00" and rows["b"][3] == "1.50"  # medians of the rounds
     assert "- b, 1 camera: [0.5, 0.75, 0.5]" in text
+
+
+def test_energy_bias_one_step_mode_names_its_measure_and_file():
+    """experiments/energy_bias.py --step 1: the report says it measures one step onto frame k+1 (not the bias), a
+    negative step is refused naming the option, and the default output is one_step_1*.md."""
+    eb = _load("energy_bias")
+    rows = [{"frame": 0, "rot_deg": 6.0, "trans_mm": 4.7, "depth_mm": -4.5, "status": "OK"}]
+    text = eb.report("cmd", ((0.0,) * 3, (0.0,) * 3), 60.0, {("truck", "lines"): rows},
+                     {"truck": ("turntable-truck", 320, 240, 60, 0.0)}, 1, step=1)
+    assert text.startswith("# One step from the true pose: frame k onto frame k+1")
+    assert "`Tracker.step` on frame k+1, against the truth of frame k+1" in text and "0: 6.0 / -4" in text
+    assert eb.report("cmd", ((0.0,) * 3, (0.0,) * 3), 60.0, {("truck", "lines"): rows},
+                     {"truck": ("turntable-truck", 320, 240, 60, 0.0)}, 1).startswith("# Energy bias")
+    with pytest.raises(SystemExit, match="--step must be ≥ 0"):
+        eb.main(["--step", "-1"])
