@@ -228,7 +228,9 @@ def worker(spec: dict) -> dict:
     """One configuration in this (fresh) process: first frame, then timed frames, then the breakdown."""
     start_experiment(cache=spec["cache_dir"] or False, compile_tiers=True)  # OpenCV on one thread; this configuration's cache folder
     import equinox as eqx
+    import ml_dtypes  # loaded by jax already: named here for the versions the result reports
 
+    import jaxtrack
     from jaxtrack import _tiered
     from jaxtrack.geometry import make_camera, rotation_error_deg, stack_cameras
     from jaxtrack.io import load_mesh, read_sequence
@@ -266,10 +268,6 @@ def worker(spec: dict) -> dict:
     t = time.perf_counter()
     state, result, info = tracker.step(state, frames(1))
     first_step_s = time.perf_counter() - t
-    import ml_dtypes
-
-    import jaxtrack
-
     out = {"imported_s": imported_s, "start_s": start_s, "first_step_s": first_step_s, "ready_s": time.time() - spec["launched"],
            "crop": list(info["crop_shape"] or ()), "jaxtrack_from": str(pathlib.Path(jaxtrack.__file__).parent),
            "ml_dtypes": ml_dtypes.__version__, "trimesh_imported": "trimesh" in sys.modules}

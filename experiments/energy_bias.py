@@ -83,18 +83,18 @@ def summary(rows: list[dict]) -> dict:
 
 
 def report(command, load, elapsed_s, runs: dict, sizes: dict, stride: int, step: int = 0) -> str:
+    start = f"Every frame k = 0, {stride}, 2·{stride}, ... of each sequence: `Tracker.start` at the true pose of frame k, then "
+    depth = "depth: the camera-z component (+: estimated farther)."
     if step:
         title = f"# One step from the true pose: frame k onto frame k+{step}"
-        what = (f"Every frame k = 0, {stride}, 2·{stride}, ... of each sequence: `Tracker.start` at the true pose of frame k, then "
-                f"`Tracker.step` on frame k+{step}, against the truth of frame k+{step}: the error of one step of the "
+        what = (f"{start}`Tracker.step` on frame k+{step}, against the truth of frame k+{step}: the error of one step of the "
                 "sequence's motion started from nothing wrong (the energy's bias and what the step's prediction and "
-                "basin miss). depth: the camera-z component (+: estimated farther). beyond: errors over 5° or 50 mm.")
+                f"basin miss). {depth} beyond: errors over 5° or 50 mm.")
     else:
         title = "# Energy bias: the step from the true pose on the same frame"
-        what = (f"Every frame k = 0, {stride}, 2·{stride}, ... of each sequence: `Tracker.start` at the true pose of frame k, then "
-                "`Tracker.step` on frame k itself (no motion). How far the refined pose lies from the truth is the bias of "
-                "the energy's minimum at that frame (a perfect energy stays put). depth: the camera-z component "
-                "(+: estimated farther). beyond: frames moved more than 5° or 50 mm.")
+        what = (f"{start}`Tracker.step` on frame k itself (no motion). How far the refined pose lies from the truth is the bias "
+                f"of the energy's minimum at that frame (a perfect energy stays put). {depth} beyond: frames moved more than "
+                "5° or 50 mm.")
     lines = [title, "", *report_header(command, load[0], load[1], elapsed_s), "", what, "",
              "Sequences: " + "; ".join(f"{label}: {p} {w}x{h}, {n} frames, {s:g} of the pixels uniform noise"
                                        for label, (p, w, h, n, s) in sizes.items()) + ".", "",
