@@ -55,6 +55,9 @@ class SiftConfig:
             (0: at the frame's own resolution); keypoints are mapped back to full-frame pixels. A large
             object then costs what a small one does (a 352 px crop: 18 ms at full size, 11 ms at 256, 5 ms at 192;
             192 lost 64 → 36 % on the teabox-large-motion preset, 256 none).
+        max_keypoints: keep at most this many keypoints per detection, those of the strongest DoG response
+            over the detection crop (OpenCV's `nfeatures`: chosen before the region mask is applied, so the
+            region keeps at most this many); 0 keeps all. Descriptors and matching cost per keypoint.
         contrast_threshold, edge_threshold, sigma, n_octave_layers: OpenCV SIFT settings.
     """
 
@@ -64,6 +67,7 @@ class SiftConfig:
     margin: int = 16
     roi: bool = True
     max_side: int = 256
+    max_keypoints: int = 0
     contrast_threshold: float = 0.04
     edge_threshold: float = 10.0
     sigma: float = 1.6
@@ -78,11 +82,14 @@ class SiftConfig:
             raise ValueError("SiftConfig.search_px and margin must be ≥ 0")
         if self.max_side < 0 or 0 < self.max_side < 16:
             raise ValueError(f"SiftConfig.max_side must be 0 (native) or ≥ 16 pixels, got {self.max_side}")
+        if self.max_keypoints < 0:
+            raise ValueError(f"SiftConfig.max_keypoints must be 0 (all) or ≥ 1, got {self.max_keypoints}")
 
     def detector(self):
         import cv2  # lazily: `import jaxtrack` must not load OpenCV
 
         return cv2.SIFT_create(
+            nfeatures=self.max_keypoints,
             nOctaveLayers=self.n_octave_layers,
             contrastThreshold=self.contrast_threshold,
             edgeThreshold=self.edge_threshold,
