@@ -84,8 +84,9 @@ def test_compiles_once_over_a_sequence(textured):
 def test_roi_and_full_frame_detection_agree(textured):
     seq = textured[0]
     mask = seq["object_mask"][0][0]
-    roi, _ = detect_sift(seq["images"][0][0], mask, SiftConfig(roi=True, max_side=0))
-    full, _ = detect_sift(seq["images"][0][0], mask, SiftConfig(roi=False, max_side=0))
+    # Every keypoint (`max_keypoints=0`): a bound would apply to the crop in one case, the whole frame in the other.
+    roi, _ = detect_sift(seq["images"][0][0], mask, SiftConfig(roi=True, max_side=0, max_keypoints=0))
+    full, _ = detect_sift(seq["images"][0][0], mask, SiftConfig(roi=False, max_side=0, max_keypoints=0))
     assert len(roi) > 30 and abs(len(roi) - len(full)) <= 0.2 * len(full)
     # Keypoints lie in the mask (up to OpenCV's sub-pixel refinement at its border).
     ys, xs = np.nonzero(mask)
@@ -111,6 +112,29 @@ def test_shrunk_detection_maps_keypoints_back_to_the_frame(textured):
     assert np.median(nearest) <= 1.5, np.median(nearest)
     with pytest.raises(ValueError, match="max_side"):
         SiftConfig(max_side=8)
+
+
+def test_max_keypoints_keeps_the_strongest_of_a_detection(textured):
+    """`max_keypoints` bounds a detection to the keypoints of the strongest DoG response (OpenCV's `nfeatures`):
+    at most that many, each one of the unbounded detection's keypoints with its descriptor; 0 keeps all."""
+    seq = textured[0]
+    image, mask = seq["images"][0][0], seq["object_mask"][0][0]
+    every, desc_every = detect_sift(image, mask, SiftConfig(max_side=0, max_keypoints=0))
+    assert len(every) > 40
+    bound = len(every) // 3
+    few, desc_few = detect_sift(image, mask, SiftConfig(max_side=0, max_keypoints=bound))
+    assert 0 < len(few) <= bound and desc_few.shape == (len(few), 128)
+    # Each kept keypoint is one of the unbounded detection's, with its descriptor (a location can carry several
+    # orientations: the same place and the same descriptor).
+    same_place = np.linalg.norm(few[:, None, :] - every[None, :, :], axis=-1) < 1e-3
+    same_descriptor = np.abs(desc_few[:, None, :] - desc_every[None, :, :]).max(-1) < 1e-3
+    assert np.all((same_place & same_descriptor).any(1))
+    # A larger bound keeps a superset (the order is by response), and 0 keeps all.
+    more, _ = detect_sift(image, mask, SiftConfig(max_side=0, max_keypoints=2 * bound))
+    assert len(few) <= len(more) and np.all(np.min(np.linalg.norm(few[:, None] - more[None], axis=-1), axis=1) < 1e-3)
+    assert len(detect_sift(image, mask, SiftConfig(max_side=0))[0]) <= SiftConfig().max_keypoints  # the default bounds
+    with pytest.raises(ValueError, match="max_keypoints"):
+        SiftConfig(max_keypoints=-1)
 
 
 def test_cached_keypoints_of_t_plus_1_serve_the_next_pair(textured):

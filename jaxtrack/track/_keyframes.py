@@ -137,12 +137,13 @@ class KeyframeModel:
 
     Args:
         vertices, faces: the mesh (model frame, mm).
-        config: `KeyframeConfig`; sift: detection settings (detected at the frames' own resolution).
+        config: `KeyframeConfig`; sift: detection settings (detected at the frames' own resolution, every keypoint
+            kept: `max_side` and `max_keypoints` are per-frame budgets of the tracking cue, not of a keyframe).
     """
 
     def __init__(self, vertices, faces, config: KeyframeConfig | None = None, sift: SiftConfig | None = None):
         self.config = KeyframeConfig() if config is None else config
-        self.sift = dataclasses.replace(SiftConfig() if sift is None else sift, max_side=0)
+        self.sift = dataclasses.replace(SiftConfig() if sift is None else sift, max_side=0, max_keypoints=0)
         self.rays = MeshRays(vertices, faces)
         self.keyframes: list[Keyframe] = []
         self.tried: list[np.ndarray] = []  # rotations of every keyframe attempt (kept or not: no keypoints there)

@@ -57,7 +57,11 @@ class SiftConfig:
             192 lost 64 → 36 % on the teabox-large-motion preset, 256 none).
         max_keypoints: keep at most this many keypoints per detection, those of the strongest DoG response
             over the detection crop (OpenCV's `nfeatures`: chosen before the region mask is applied, so the
-            region keeps at most this many); 0 keeps all. Descriptors and matching cost per keypoint.
+            region keeps at most this many; with `roi=False` over the whole frame); 0 keeps all. Descriptors
+            cost about 22 µs a keypoint on this 2-core machine and matching grows with the product of the two
+            frames' counts; the default, the match capacity, binds on richly textured crops (600 keypoints
+            in a 256 px crop of a real textured scene: 24 → 12 ms detection and matching), not on the bench box or
+            the recorded sequences' objects (experiments/results/sift_max_keypoints.md).
         contrast_threshold, edge_threshold, sigma, n_octave_layers: OpenCV SIFT settings.
     """
 
@@ -67,7 +71,7 @@ class SiftConfig:
     margin: int = 16
     roi: bool = True
     max_side: int = 256
-    max_keypoints: int = 0
+    max_keypoints: int = 256
     contrast_threshold: float = 0.04
     edge_threshold: float = 10.0
     sigma: float = 1.6
