@@ -1,14 +1,17 @@
-"""Warm first frame, alternatives side by side: `bench_track`'s worker in fresh processes, variants alternated.
+"""Warm (or cold) first frame, alternatives side by side: `bench_track`'s worker in fresh processes, variants alternated.
 
     python experiments/warm_start_ab.py --variant "ml_dtypes 0.7.0=/tmp/mld070" --variant "as installed=" \\
         --cameras 1,4 --rounds 4 --out experiments/results/warm_start_ml_dtypes.md
+    python experiments/warm_start_ab.py --cold --variant "before=/tmp/before" --variant "after=" --cameras 1 --rounds 3
 
 A variant is `LABEL=PYTHONPATH`: its processes run with that PYTHONPATH put first (another checkout of the
 repository, e.g. a `git worktree` of an older commit, or a folder a package was installed into with
 `pip install --target DIR --no-deps PKG==VER`); an empty path runs the environment as installed. Each variant and
 camera count gets its own on-disk compile cache, filled by one cold process first (the step compiled, the view
 models and the mesh cache written); then each round runs one warm process per variant and camera count, the
-variants in turn, so that the machine's drift over the run falls on all of them alike.
+variants in turn, so that the machine's drift over the run falls on all of them alike. With `--cold` every round's
+process starts from empty caches instead (compile cache, exported programs, view models, mesh cache: what a new
+machine has), and no fill runs first.
 
 Measured per process, from its launch (bench_track's 'first frame, warm cache'): imports (until the worker's
 imports are done), `Tracker.start`, the first `Tracker.step` and the first frame ready (all of it). Setting:
@@ -59,6 +62,7 @@ def main(argv=None):
     ap.add_argument("--cameras", default="1,4", help="camera counts, comma-separated (1..4)")
     ap.add_argument("--cues", default="all", choices=("all", "region"))
     ap.add_argument("--rounds", type=int, default=4, help="warm processes per variant and camera count")
+    ap.add_argument("--cold", action="store_true", help="every round from empty caches (no fill first)")
     ap.add_argument("--frames", type=int, default=3, help="frames of the sequence (the warm process tracks one)")
     ap.add_argument("--timeout", type=float, default=1200, help="seconds per process")
     ap.add_argument("--title", default="Warm first frame: alternatives alternated")
@@ -84,6 +88,8 @@ def main(argv=None):
         def run(i, label, path, cams, mode):
             # Each variant's own view-model and mesh caches as well as its compile cache: nothing filled by another.
             cache = work / f"cache_{i}_{cams}"
+            if args.cold:  # what a new machine has: nothing
+                shutil.rmtree(cache, ignore_errors=True)
             env = dict(variant_env(path), JAXTRACK_CACHE=str(cache / "views"), JAXTRACK_MESH_CACHE=str(cache / "meshes"))
             out = run_worker(dict(base, cameras=cams, cache_dir=str(cache / "xla"), mode=mode), args.timeout, env)
             print(f"[warm_start_ab] {label} {cams} cam {mode}: first frame {out['ready_s']:.2f} s "
@@ -91,12 +97,14 @@ def main(argv=None):
                   file=sys.stderr, flush=True)
             return out
 
-        cold = {(label, c): run(i, label, path, c, "cold") for c in cameras for i, (label, path) in enumerate(variants)}
-        warm = {key: [] for key in cold}
+        keys = [(label, c) for c in cameras for label, _ in variants]
+        cold = {} if args.cold else {(label, c): run(i, label, path, c, "cold") for c in cameras
+                                     for i, (label, path) in enumerate(variants)}
+        warm = {key: [] for key in keys}  # the rounds (cold ones with --cold)
         for _ in range(args.rounds):
             for c in cameras:
                 for i, (label, path) in enumerate(variants):
-                    warm[(label, c)].append(run(i, label, path, c, "warm"))
+                    warm[(label, c)].append(run(i, label, path, c, "cold" if args.cold else "warm"))
     finally:
         shutil.rmtree(work, ignore_errors=True)
     text = report(args, command, variants, cameras, cold, warm, clock)
@@ -109,8 +117,10 @@ def report(args, command, variants, cameras, cold, warm, clock) -> str:
     med = lambda runs, key: float(np.median([r[key] for r in runs]))
     lines = [f"# {args.title}", "", *report_header(command, clock.load_start, os.getloadavg(), clock.elapsed_s()), "",
              (f"bench_track's textured box, 640x480, cues {args.cues}; each process fresh, launched by this script; each variant "
-             "with its own compile, view-model and mesh caches filled by its cold process; rounds alternate the variants."),
-             "", ("| variant | cameras | first frame, warm (s), rounds | median | imports (s), median | start (s), median | "
+              + ("with empty compile, exported-program, view-model and mesh caches in every round (`--cold`)"
+                 if args.cold else "with its own compile, view-model and mesh caches filled by its cold process")
+              + "; rounds alternate the variants."),
+             "", (f"| variant | cameras | first frame, {'cold' if args.cold else 'warm'} (s), rounds | median | imports (s), median | start (s), median | "
              "first step (s), median | ml_dtypes | trimesh imported | jaxtrack from |"),
              "|---|---:|---|---:|---:|---:|---:|---|---|---|"]
     for c in cameras:
@@ -127,9 +137,11 @@ def report(args, command, variants, cameras, cold, warm, clock) -> str:
             for label, _ in variants[1:]:
                 ratios = [round(b["ready_s"] / a["ready_s"], 2) for a, b in zip(warm[(ref, c)], warm[(label, c)])]
                 lines.append(f"- {label}, {c} camera{'s' if c > 1 else ''}: {ratios}")
-    lines += ["", "Cold fills (s; first frame / imports / start / first step): " + "; ".join(
-        f"{label} {c} cam {r['ready_s']:.1f} / {r['imported_s']:.2f} / {r['start_s']:.2f} / {r['first_step_s']:.2f}"
-        for (label, c), r in cold.items()) + ".", ""]
+    if cold:
+        lines += ["", "Cold fills (s; first frame / imports / start / first step): " + "; ".join(
+            f"{label} {c} cam {r['ready_s']:.1f} / {r['imported_s']:.2f} / {r['start_s']:.2f} / {r['first_step_s']:.2f}"
+            for (label, c), r in cold.items()) + "."]
+    lines.append("")
     return "\n".join(lines)
 
 
