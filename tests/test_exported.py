@@ -385,56 +385,6 @@ def test_the_first_step_compiled_from_start_on_is_the_one_the_step_runs(folder, 
         assert not tracker._compiled  # the thread did not compile under other settings; the step will
 
 
-def test_a_view_model_not_on_disk_is_built_while_the_first_step_compiles(folder, tmp_path, monkeypatch):
-    """With no view model on disk, `Tracker.start` starts the first step's compile on zeros of the model's shapes
-    (`LineRegion.prepared_like`, `view_model_like`) and builds the model meanwhile: the build runs while the compile
-    thread is alive, the placeholders are gone after `start`, the step traces and compiles nothing of its own (one
-    entry per kept step program, compiled before the step), and the poses equal those of a tracker that loaded the
-    model from disk (the same signature: a wrong guess would compile twice)."""
-    import threading
-
-    from jaxtrack.cues.lines import SparseViewModel, _viewmodel
-    from jaxtrack.track import Tracker, TrackerConfig
-    from jaxtrack.track._step import track_step
-
-    mesh, camera, images, T0, kept = _small_box_scene(np.uint8)
-    monkeypatch.setattr(os, "cpu_count", lambda: 2)  # one camera, two cores: start_frame beside track_step
-    monkeypatch.setenv("JAXTRACK_CACHE", str(tmp_path / "viewmodels"))  # no view model on disk
-    threads_at_build = []
-    build = _viewmodel.build_view_model
-
-    def watched(*args, **kwargs):
-        threads_at_build.append({t.name for t in threading.enumerate()})
-        return build(*args, **kwargs)
-
-    monkeypatch.setattr(_viewmodel, "build_view_model", watched)
-
-    def run():
-        for wrapped in kept:  # as in a new process
-            monkeypatch.setattr(wrapped, "memory", {})
-        traces = eqx.debug.get_num_traces(track_step)
-        tracker = Tracker(mesh, camera, config=TrackerConfig(cues=("region", "sift")))
-        state = tracker.start(images[0], T0)
-        models = [p for p in tracker.prepared if isinstance(p, SparseViewModel)]
-        assert len(models) == 1 and bool(np.asarray(models[0].valid).any())  # the real model, not the zeros
-        tracker.join_background()
-        for wrapped in kept[:2]:  # track_step's and start_frame's programs: compiled before the step
-            assert len(wrapped.memory) == 1 and next(iter(wrapped.memory.values())).compiled
-        poses = []
-        for k in (1, 2):
-            state, result, _ = tracker.step(state, images[k])
-            poses.append(np.asarray(result.T_world_root))
-        assert all(len(wrapped.memory) == 1 for wrapped in kept[:2])  # nothing compiled for another signature
-        return np.stack(poses), eqx.debug.get_num_traces(track_step) - traces
-
-    built = run()
-    assert len(threads_at_build) == 1 and "jaxtrack-first-step-compile" in threads_at_build[0], threads_at_build
-    loaded = run()
-    assert len(threads_at_build) == 1  # the second tracker loaded the model the first one wrote
-    assert np.array_equal(built[0], loaded[0])
-    assert (built[1], loaded[1]) == (1, 0)  # traced once, for the export (the second loads what the first wrote)
-
-
 def test_dispatches_async_only_for_kept_programs(folder, monkeypatch):
     double = persistent_jit(lambda x: 2.0 * x)
     x = jnp.ones((3,), jnp.float32)

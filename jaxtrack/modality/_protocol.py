@@ -184,12 +184,6 @@ class Modality(eqx.Module):
         arrays handed back as `ctx.prepared`, an input of the compiled step (never copied per frame)."""
         return None
 
-    def prepared_like(self, mesh, model, cameras) -> Any:
-        """`prepare`'s result with zero arrays of its exact shapes and dtypes, for a `prepare` that will take long (a
-        sparse viewpoint model not yet on disk): `Tracker.start` compiles the first step's programs on these (they need
-        only shapes) in a background thread while `prepare` runs. None (the default): `prepare` runs first."""
-        return None
-
     def loop_preferences(self) -> tuple[int, int, int]:
         """(rounds, Gauss-Newton steps per round, minimum rounds before the pose may settle) this modality
         wants from the refinement loop; 0 = no preference. The loop takes the largest of each."""

@@ -471,34 +471,6 @@ class Tracker:
             self.prepared = tuple(m.prepare(self.mesh, self.model, self.cameras) for m in self.config.modalities())
         return self.prepared
 
-    def _prepare_with_placeholders(self) -> list[int]:
-        """`prepare`, except that a modality whose set-up will take long (`Modality.prepared_like` not None, e.g. a
-        view model to build) holds zeros of its result's shapes for now, so that `start` can compile the first step
-        on them (`_start_precompile`, shapes only) while `_finish_prepare` makes the real set-up. Returns the indices
-        of the modalities left to prepare (none when already prepared, or without the first step's precompile)."""
-        if self.prepared is not None:
-            return []
-        modalities = self.config.modalities()
-        likes = [m.prepared_like(self.mesh, self.model, self.cameras) if self.precompile_first_step else None
-                 for m in modalities]
-        self.prepared = tuple(m.prepare(self.mesh, self.model, self.cameras) if like is None else like
-                              for m, like in zip(modalities, likes, strict=True))
-        return [i for i, like in enumerate(likes) if like is not None]
-
-    def _finish_prepare(self, pending: list[int]) -> None:
-        """The real set-up of the modalities `_prepare_with_placeholders` left (their zeros never reach a run: on an
-        error nothing stays prepared)."""
-        if not pending:
-            return
-        modalities, prepared = self.config.modalities(), list(self.prepared)
-        try:
-            for i in pending:
-                prepared[i] = modalities[i].prepare(self.mesh, self.model, self.cameras)
-        except BaseException:
-            self.prepared = None
-            raise
-        self.prepared = tuple(prepared)
-
     # --- host helpers -----------------------------------------------------------------------------
     def check_frames(self, frames, name: str = "frames") -> np.ndarray:
         """(C, H, W, 3) frames from (C, H, W[, 3]) or, for one camera, (H, W[, 3]): uint8 stays uint8, anything
@@ -738,8 +710,7 @@ class Tracker:
         self._failed_searches = self._searches_to_skip = 0
         if self.plan is None:
             self._replan(T, theta)
-        # A set-up that takes long (a view model to build) is made while the first step compiles on its shapes.
-        pending = self._prepare_with_placeholders()
+        self.prepare()
         offsets, crop_shape, scales = self.windows(T, theta, boxes)
         if self.atlas is None:
             texel = self.texel_mm
@@ -753,26 +724,13 @@ class Tracker:
         # move), others in the tracker's dtype. Later frames are cast to the same dtype: one program.
         self.frame_dtype = np.uint8 if frames.dtype == np.uint8 else np.dtype(self.dtype)
         occluder_depth = None if occluder_depth is None else to_device(occluder_depth, self.dtype)
-
-        def start_args():
-            setup = self.setup()
-            appearance_args = self._initial_appearance_args(to_device(frames), T, theta, offsets, crop_shape, scales)
-            # The first frame's pose is known: every modality learns its state there (the level set's local
-            # densities, so the next frame's first iterations use densities of the right regions, Section IV).
-            states_args = (setup, to_device(frames, self.dtype), to_device(offsets), T, theta,
-                           self.params_for(crop_shape), crop_shape, _as_array(scales), occluder_depth)
-            return appearance_args, states_args
-
-        try:
-            appearance_args, states_args = start_args()
-            self._start_precompile(frames, appearance_args, states_args)
-        except BaseException:
-            if pending:
-                self.prepared = None  # placeholders never stay
-            raise
-        if pending:  # the real set-up (a view model built) beside the first step's compile
-            self._finish_prepare(pending)
-            appearance_args, states_args = start_args()
+        setup = self.setup()
+        appearance_args = self._initial_appearance_args(to_device(frames), T, theta, offsets, crop_shape, scales)
+        # The first frame's pose is known: every modality learns its state there (the level set's local
+        # densities, so the next frame's first iterations use densities of the right regions, Section IV).
+        states_args = (setup, to_device(frames, self.dtype), to_device(offsets), T, theta, self.params_for(crop_shape),
+                       crop_shape, _as_array(scales), occluder_depth)
+        self._start_precompile(frames, appearance_args, states_args)
         sil, appearance = _initial_appearance_jit(*appearance_args)
         states = _initial_modality_states(*states_args)
         self.keyframes = None

@@ -25,8 +25,7 @@ from ...render import render
 from ...solve import Correspondences, Cue
 from ._histograms import ColourHistograms, log_odds_table, update_histograms
 from ._lines import LineConfig, learn_line_histograms, line_rows, measure_lines, schedule
-from ._viewmodel import (ContourPoints, SparseViewModel, contour_points_from_render, load_or_build_view_model,
-                         view_model_like, view_model_path)
+from ._viewmodel import ContourPoints, SparseViewModel, contour_points_from_render, load_or_build_view_model
 
 
 class LineState(eqx.Module):
@@ -109,16 +108,6 @@ class LineRegion(Modality):
             return None
         return load_or_build_view_model(mesh, num_points=self.num_points, subdivisions=self.subdivisions,
                                         image_size=self.image_size)
-
-    def prepared_like(self, mesh, model, cameras):
-        """Zeros shaped as the view model `prepare` will build (`view_model_like`) when it is not on disk yet (a build:
-        7-9 s for a box, about 70 s for a mesh of 15 000 faces); None when it is (a load) and for a chain."""
-        if model.num_joints > 0 or model.num_parts > 1:
-            return None
-        if view_model_path(mesh, num_points=self.num_points, subdivisions=self.subdivisions,
-                           image_size=self.image_size).is_file():
-            return None
-        return view_model_like(mesh, self.num_points, self.subdivisions)
 
     @staticmethod
     def _per_camera(ctx, fn, points, *per_camera):

@@ -547,24 +547,6 @@ def load_view_model(path, dtype=jnp.float32) -> SparseViewModel:
     return SparseViewModel(**{k: to_device(v) if k == "valid" else to_device(v, dtype) for k, v in arrays.items()})
 
 
-def view_model_like(mesh: Mesh, num_points: int = 200, subdivisions: int = 4) -> SparseViewModel:
-    """Zeros shaped and typed as `build_view_model(mesh, num_points, subdivisions)`'s result, without rendering:
-    V = 10 · 4^subdivisions + 2 views of N = `num_points` points, the mesh's dtype (`valid` bool). A compiled
-    program that takes a view model needs only these shapes: the tracker compiles its first step on them while the
-    real model is built (`Modality.prepared_like`). Never a model to track with (every point invalid)."""
-    dtype = mesh.vertices.dtype
-    views = 10 * 4 ** int(subdivisions) + 2
-
-    def zeros(*shape):
-        return to_device(np.zeros(shape, np.dtype(dtype)), dtype)
-
-    return SparseViewModel(
-        directions=zeros(views, 3), points=zeros(views, num_points, 3), normals=zeros(views, num_points, 3),
-        foreground_distance=zeros(views, num_points), background_distance=zeros(views, num_points),
-        valid=to_device(np.zeros((views, num_points), bool)), center=zeros(3), contour_length=zeros(views),
-    )
-
-
 def load_or_build_view_model(mesh: Mesh, cache_dir=None, batch_size: int = 32, progress: bool = False,
                              **settings) -> SparseViewModel:
     """`build_view_model` cached on disk as .npz, keyed by a sha256 of the mesh's vertices and faces and
