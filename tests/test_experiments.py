@@ -342,7 +342,7 @@ def test_warm_start_ab_reads_its_variants_and_pairs_the_rounds(tmp_path):
     cold = {("a", 1): run(30.0), ("b", 1): run(20.0)}
 
     class Args:
-        title, cues = "T", "all"
+        title, cues, cold = "T", "all", False
 
     class Clock:
         load_start = (0.0, 0.0, 0.0)
@@ -353,6 +353,12 @@ def test_warm_start_ab_reads_its_variants_and_pairs_the_rounds(tmp_path):
     text = ab.report(Args, "cmd", [("a", ""), ("b", "")], [1], cold, warm, Clock())
     rows = {line.split(" | ")[0].strip("| "): line.split(" | ") for line in text.splitlines() if line.startswith(("| a ", "| b "))}
     assert rows["a"][3] == "3.00" and rows["b"][3] == "1.50"  # medians of the rounds
+    assert "- b, 1 camera: [0.5, 0.75, 0.5]" in text
+    assert "first frame, warm (s)" in text and "Cold fills" in text
+    # --cold: every round from empty caches, no fill; the table says so and has no fill line.
+    Args.cold = True
+    text = ab.report(Args, "cmd", [("a", ""), ("b", "")], [1], {}, warm, Clock())
+    assert "first frame, cold (s)" in text and "empty compile" in text and "Cold fills" not in text
     assert "- b, 1 camera: [0.5, 0.75, 0.5]" in text
 
 
