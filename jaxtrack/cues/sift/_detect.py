@@ -60,8 +60,9 @@ class SiftConfig:
             region keeps at most this many; with `roi=False` over the whole frame); 0 keeps all. Descriptors
             cost about 22 µs a keypoint on this 2-core machine and matching grows with the product of the two
             frames' counts; the default, the match capacity, binds on richly textured crops (600 keypoints
-            in a 256 px crop of a real textured scene: 24 → 12 ms detection and matching), not on the bench box or
-            the recorded sequences' objects (experiments/results/sift_max_keypoints.md).
+            in a 256 px crop of a real textured scene: 24 ms to detect and match; 15 ms bounded at 300, 12 at
+            200), not on the bench box or the recorded sequences' objects
+            (experiments/results/sift_max_keypoints.md).
         contrast_threshold, edge_threshold, sigma, n_octave_layers: OpenCV SIFT settings.
     """
 
