@@ -129,7 +129,7 @@ def test_max_keypoints_keeps_the_strongest_of_a_detection(textured):
     same_place = np.linalg.norm(few[:, None, :] - every[None, :, :], axis=-1) < 1e-3
     same_descriptor = np.abs(desc_few[:, None, :] - desc_every[None, :, :]).max(-1) < 1e-3
     assert np.all((same_place & same_descriptor).any(1))
-    # A larger bound keeps a superset (the order is by response), and 0 keeps all.
+    # A larger bound keeps a superset (the order is by response); the default is a bound too.
     more, _ = detect_sift(image, mask, SiftConfig(max_side=0, max_keypoints=2 * bound))
     assert len(few) <= len(more) and np.all(np.min(np.linalg.norm(few[:, None] - more[None], axis=-1), axis=1) < 1e-3)
     assert len(detect_sift(image, mask, SiftConfig(max_side=0))[0]) <= SiftConfig().max_keypoints  # the default bounds

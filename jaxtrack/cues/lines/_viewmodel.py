@@ -415,13 +415,20 @@ def _tight_plan(extents: np.ndarray, cull: bool) -> RasterPlan:
     return RasterPlan(patch_sizes=tuple(s for s, _ in kept), capacities=tuple(c for _, c in kept), cull_backfaces=cull)
 
 
+# Views per vmapped call of the build: 8 renders a box's 2562 views in 5.7 s against 8.5 s at 32 on a 2-core CPU; a
+# mesh of many faces, which takes the planned raster path, builds in the same time either way (the real dragon: 66 s).
+# The model depends on it a little: pixels exactly on a face's edge fall either way in other batch shapes
+# (experiments/results/*_view_batch_8.md).
+BUILD_BATCH_SIZE = 8
+
+
 def build_view_model(
     mesh: Mesh,
     num_points: int = 200,
     subdivisions: int = 4,
     image_size: int = 256,
     distance_factor: float = 10.0,
-    batch_size: int = 8,
+    batch_size: int = BUILD_BATCH_SIZE,
     cull_backfaces: bool | None = None,
     sigma: float = 1.5,
     progress: bool = False,
@@ -436,10 +443,7 @@ def build_view_model(
         subdivisions: of the icosahedron (M3T: 4 → 2562 views).
         image_size: side of the square renders in px; the object's bounding sphere fills 90 % of it.
         distance_factor: camera distance in bounding radii (far: nearly orthographic views).
-        batch_size: views per vmapped call (memory ∝ batch_size · image_size²). 8: a box's 2562 views in 5.7 s
-            against 8.5 s at 32 on a 2-core CPU; a mesh of many faces, which
-            takes the planned raster path, builds in the same time either way (the real dragon: 66 s). The model
-            depends on it a little: pixels exactly on a face's edge fall either way in other batch shapes.
+        batch_size: views per vmapped call (memory ∝ batch_size · image_size²; default `BUILD_BATCH_SIZE`).
         cull_backfaces: skip back faces (exact for closed meshes, about twice as fast); None: when
             the mesh hides its back faces (`jaxtrack.render.hides_its_back_faces`).
         sigma: smoothing (px) of the silhouette for the normals.
@@ -550,7 +554,7 @@ def load_view_model(path, dtype=jnp.float32) -> SparseViewModel:
     return SparseViewModel(**{k: to_device(v) if k == "valid" else to_device(v, dtype) for k, v in arrays.items()})
 
 
-def load_or_build_view_model(mesh: Mesh, cache_dir=None, batch_size: int = 8, progress: bool = False,
+def load_or_build_view_model(mesh: Mesh, cache_dir=None, batch_size: int = BUILD_BATCH_SIZE, progress: bool = False,
                              **settings) -> SparseViewModel:
     """`build_view_model` cached on disk as .npz, keyed by a sha256 of the mesh's vertices and faces and
     the settings (`num_points`, `subdivisions`, `image_size`, `distance_factor`, `cull_backfaces`,

@@ -59,7 +59,7 @@ class SiftConfig:
             over the detection crop (OpenCV's `nfeatures`: chosen before the region mask is applied, so the
             region keeps at most this many; with `roi=False` over the whole frame); 0 keeps all. Descriptors
             cost about 22 µs a keypoint on this 2-core machine and matching grows with the product of the two
-            frames' counts; the default, the match capacity, binds on richly textured crops (600 keypoints
+            frames' counts; the default, the match capacity, binds on richly textured crops (588 keypoints
             in a 256 px crop of a real textured scene: 24 ms to detect and match; 15 ms bounded at 300, 12 at
             200), not on the bench box or the recorded sequences' objects
             (experiments/results/sift_max_keypoints.md).
