@@ -325,6 +325,34 @@ def test_view_model_cache_round_trip(tmp_path, monkeypatch):
 
 # ------------------------------------------------------------------------------------------ tracking
 
+@pytest.mark.parametrize("cull", [False, True])
+def test_view_plan_extents_equal_a_per_view_reference(cull):
+    """The build's face extents (a few views at a time, from the distinct vertex positions) equal the direct
+    per-view computation on a mesh whose faces repeat their vertices, and the plan covers every view's classes."""
+    torus = torus_mesh(40.0, 12.0, 12, 8, F32)
+    v, f = np.asarray(torus.vertices, np.float64), np.asarray(torus.faces)
+    vertices, faces = v[f].reshape(-1, 3), np.arange(3 * len(f)).reshape(-1, 3)  # no shared vertices
+    directions, _ = _viewmodel.icosphere(1)
+    K, T = _viewmodel._view_cameras(np.zeros(3), 52.0, directions, 64, 3.0)
+    got = _viewmodel._face_extents_all(vertices, faces, K, T, 64, cull)
+    assert got.shape == (len(T), len(faces)) and got.max() > 0
+    for view in range(len(T)):
+        p = vertices @ T[view, :3, :3].T + T[view, :3, 3]
+        tri = np.stack([K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2], K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]], -1)[faces]
+        lo, hi = np.maximum(np.ceil(tri.min(1)), 0), np.minimum(np.floor(tri.max(1)), 63)
+        ok = np.all(hi >= lo, axis=-1)
+        if cull:
+            e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+            ok &= e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0] < 0
+        np.testing.assert_array_equal(got[view], np.where(ok, (hi - lo + 1).max(-1), 0))
+    plan = _viewmodel._tight_plan(got, cull)
+    sizes = np.asarray(plan.patch_sizes)
+    for view in range(len(T)):
+        e = got[view][got[view] > 0]
+        need = np.bincount(np.searchsorted(sizes, e), minlength=len(sizes))
+        assert np.all(need[: len(sizes)] <= np.asarray(plan.capacities)) and need.max() > 0
+
+
 
 @pytest.fixture(scope="module")
 def box_scene():
