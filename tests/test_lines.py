@@ -271,6 +271,34 @@ def test_view_model_points_lie_on_the_contour(name):
     _check_view_model_on_raycast_contour(mesh, vm)
 
 
+@pytest.mark.parametrize("capacity", [7, 40, 400])
+def test_the_builds_host_selection_equals_the_jitted_one(capacity):
+    """The view model's build selects contour pixels on the host (`contour_pixels_host`, `_contour_keys`,
+    `select_along_contour_host`): the same indices, validity, count and overflow as the per-frame path's jitted
+    `_select_along_contour`, for fewer and more contour pixels than slots, an empty silhouette and one whose
+    contour overflows `max_contour`."""
+    yy, xx = np.mgrid[:64, :80]
+    silhouettes = np.stack([
+        (yy - 30.3) ** 2 / 400 + (xx - 41.7) ** 2 / 900 < 1,  # an ellipse
+        ((yy // 7 + xx // 5) % 2 == 0) & (yy > 2) & (yy < 60) & (xx > 3) & (xx < 70),  # a checker: long contour
+        np.zeros((64, 80), bool),
+        (np.abs(yy - 32) < 9) & (np.abs(xx - 40) < 9),  # a square: ties in angle about its centre
+    ])
+    max_contour = 300
+    contour = np.asarray(jax.vmap(_viewmodel._inner_contour)(jnp.asarray(silhouettes)))
+    assert contour[1].sum() > max_contour and 0 < contour[0].sum() < max_contour
+    want = jax.jit(jax.vmap(lambda s: _viewmodel._select_along_contour(_viewmodel._inner_contour(s), s, capacity,
+                                                                       max_contour)))(jnp.asarray(silhouettes))
+    flat_all, total = _viewmodel.contour_pixels_host(contour, max_contour)
+    centroid = jax.vmap(_viewmodel._silhouette_centroid)(jnp.asarray(silhouettes))
+    keys = np.asarray(jax.vmap(lambda f, c, m: _viewmodel._contour_keys(f, c, m, 80))(
+        flat_all, np.minimum(total, max_contour), centroid))
+    for i in range(len(silhouettes)):
+        got = _viewmodel.select_along_contour_host(flat_all[i], total[i], keys[i], capacity)
+        for g, w in zip(got, want, strict=True):
+            np.testing.assert_array_equal(np.asarray(g), np.asarray(w)[i])
+
+
 def test_contour_points_from_render_of_a_chain():
     """The per-frame path: contour points of a two-part chain from one render, projected at the same pose."""
     a = box_mesh((60, 40, 40), F32)
