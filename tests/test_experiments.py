@@ -375,3 +375,24 @@ def test_energy_bias_one_step_mode_names_its_measure_and_file():
                      {"truck": ("turntable-truck", 320, 240, 60, 0.0)}, 1).startswith("# Energy bias")
     with pytest.raises(SystemExit, match="--step must be ≥ 0"):
         eb.main(["--step", "-1"])
+
+
+def test_view_model_build_refuses_unknown_meshes_and_tables_the_rounds(tmp_path, monkeypatch):
+    """experiments/view_model_build.py: a mesh that is neither built in nor a file is refused naming --meshes; the
+    table has each variant's median over the rounds and says whether the variants' models were identical."""
+    vmb = _load("view_model_build")
+    with pytest.raises(SystemExit, match="--meshes"):
+        vmb.mesh_path("no-such-mesh")
+    assert vmb.mesh_path("box") == "box"
+    times = iter([3.0, 1.0, 5.0, 2.0, 4.0, 3.0])  # rounds alternate: a, b, a, b, a, b
+
+    def fake_build(path, variant_path, out):
+        np.savez(out, points=np.arange(4.0) + (1.0 if variant_path else 0.0))  # variant b's model differs
+        return next(times), 12
+
+    monkeypatch.setattr(vmb, "build_once", fake_build)
+    out = tmp_path / "v.md"
+    vmb.main(["--meshes", "box", "--rounds", "3", "--variant", "a=", "--variant", f"b={tmp_path}", "--out", str(out)])
+    row = [line for line in out.read_text().splitlines() if line.startswith("| box |")][0].split(" | ")
+    assert row[1] == "12" and row[2].startswith("4.00 [3.0, 5.0, 4.0]") and row[3].startswith("2.00 [1.0, 2.0, 3.0]")
+    assert row[4].strip(" |") == "no"

@@ -488,7 +488,8 @@ def _tight_plan(extents: np.ndarray, cull: bool, chunk: int = 64) -> RasterPlan:
 
 
 # Views per vmapped call of the build: 8 renders a box's 2562 views in 5.7 s against 8.5 s at 32 on a 2-core CPU; a
-# mesh of many faces, which takes the planned raster path, builds in the same time either way (the real dragon: 66 s).
+# mesh of many faces, which takes the planned raster path, built in the same time either way (the real dragon: 66 s,
+# before its plan and the contour selection moved to the host: experiments/results/view_model_build.md).
 # The model depends on it a little: pixels exactly on a face's edge fall either way in other batch shapes
 # (experiments/results/*_view_batch_8.md).
 BUILD_BATCH_SIZE = 8
