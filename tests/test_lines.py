@@ -481,3 +481,14 @@ def test_pose_after_rounds_differentiates_like_finite_differences(box_scene):
                    for e in jnp.eye(2, dtype=f64)], -1)
     assert np.max(np.abs(jac)) > 1e-2  # the parameters do move the pose
     np.testing.assert_allclose(jac, fd, rtol=1e-4, atol=1e-5 * np.max(np.abs(fd)))
+
+
+def test_a_build_reports_its_views_to_the_progress_hook():
+    """`view_model_build_progress`: within the block each batch of views is reported (done, total); outside, none."""
+    mesh = box_mesh((50, 30, 20), F32)
+    seen = []
+    with L.view_model_build_progress(lambda done, total: seen.append((done, total))):
+        L.build_view_model(mesh, num_points=8, subdivisions=0, image_size=32, batch_size=8)
+    assert seen == [(8, 12), (12, 12)]
+    L.build_view_model(mesh, num_points=8, subdivisions=0, image_size=32, batch_size=8)
+    assert len(seen) == 2

@@ -453,3 +453,31 @@ def test_track_searches_after_a_lost_frame_unless_reset_or_told_not_to(seq_dir, 
     assert main(["track", str(seq_dir), "-o", str(tmp_path / "r.csv"), "--quiet", "--no-cache", *flags]) == 0
     (tracker,) = fake.built
     assert (tracker.config.recovery is not None) == searches, (flags, tracker.config.recovery)
+
+
+def test_the_progress_bar_keeps_its_clock_running_through_a_long_frame():
+    """`track_sequence`'s bar during a long frame (the set-up, a compile): after a second it is redrawn with what runs
+    (the view model's views once the build reports them) and the seconds so far; after `idle` it is left alone."""
+    import io
+
+    from tqdm import tqdm
+
+    out = io.StringIO()
+    bar = tqdm(total=3, file=out, mininterval=0)
+    heartbeat = sequence_module._BarHeartbeat(bar, period=0.1)
+    try:
+        heartbeat.busy("set-up")
+        heartbeat.views(8, 12)
+        time.sleep(1.5)
+        heartbeat.idle()
+        time.sleep(0.05)  # a redraw already under way ends
+        shown = out.getvalue()
+        time.sleep(0.4)
+        assert out.getvalue() == shown  # idle: no more redraws
+        assert not bar.postfix  # and its text cleared for the frame's own postfix
+    finally:
+        heartbeat.close()
+    assert "set-up: view model 8/12 views (1 s)" in shown
+    none = sequence_module._BarHeartbeat(None)  # no bar: no thread, nothing to do
+    none.busy("x")
+    none.close()

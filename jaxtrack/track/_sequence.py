@@ -20,6 +20,7 @@ import dataclasses
 import json
 import os
 import pathlib
+import threading
 import time
 from collections.abc import Callable
 
@@ -171,6 +172,55 @@ def _progress_bar(progress: bool, n: int, desc: str):
     return tqdm(total=n, desc=desc, unit="frame")
 
 
+class _BarHeartbeat:
+    """Keeps a progress bar alive while one frame takes long (the set-up, a compile): from `busy(text)` on, a thread
+    redraws the bar every `period` s once the frame has taken over a second, its clock running and `text (N s)` as
+    its postfix (the view model's build, `view_model_build_progress`, puts its views there); `idle()` stops that
+    before the frame's own update. With no bar it does nothing."""
+
+    def __init__(self, bar, period: float = 0.5):
+        self.bar, self.period = bar, period
+        self._lock = threading.Lock()
+        self._text, self._since, self._wrote = None, 0.0, False
+        self._stop = threading.Event()
+        self._thread = None
+        if bar is not None:
+            self._thread = threading.Thread(target=self._run, name="jaxtrack-progress", daemon=True)
+            self._thread.start()
+
+    def busy(self, text: str) -> None:
+        with self._lock:
+            self._text, self._since = text, time.perf_counter()
+
+    def views(self, done: int, total: int) -> None:
+        """A `view_model_build_progress` callback: the set-up's postfix names the views built."""
+        with self._lock:
+            if self._text is not None:
+                self._text = f"set-up: view model {done}/{total} views"
+
+    def idle(self) -> None:
+        """The frame is done: no more redraws, and the postfix it wrote is cleared (the frame's own update follows)."""
+        with self._lock:
+            if self._wrote:
+                self.bar.set_postfix_str("", refresh=False)
+            self._text, self._wrote = None, False
+
+    def close(self) -> None:
+        self.idle()
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.period):
+            with self._lock:
+                waited = time.perf_counter() - self._since
+                if self._text is not None and waited > 1.0:
+                    self.bar.set_postfix_str(f"{self._text} ({waited:.0f} s)", refresh=False)
+                    self.bar.refresh()
+                    self._wrote = True
+
+
 def track_sequence(
     sequence,
     *,
@@ -302,9 +352,14 @@ def track_sequence(
                                 joints_urdf=None if articulated is None else thetas[-1] / articulated["scale"])
             writer.end_frame()
 
-    with writer if writer is not None else contextlib.nullcontext():  # rows on disk as they come; complete at the end
+    from ..cues.lines import view_model_build_progress
+
+    heartbeat = _BarHeartbeat(bar)
+    with (writer if writer is not None else contextlib.nullcontext(),  # rows on disk as they come; complete at the end
+          contextlib.closing(heartbeat), view_model_build_progress(heartbeat.views)):
         start = time.perf_counter()
         images = frames(0)
+        heartbeat.busy("set-up")
         state = tracker.start(images, np.linalg.inv(T_cam0_world) @ init_pose, theta0)
         poses, thetas = [np.asarray(state.T_world_root, np.float64)], [np.asarray(state.theta, np.float64)]
         status, conf = [Status.OK.name], [1.0]
@@ -316,10 +371,12 @@ def track_sequence(
         lost_iou = None if articulated is None else float(tracker.params_for((64, 64)).lost_iou)
         save(0)
         report(0, images, poses[0])
+        heartbeat.idle()
         if bar is not None:
             bar.update(1)
         for k in range(1, n):
             t0 = time.perf_counter()
+            heartbeat.busy(f"frame {k}: compiling or loading a program" if k == 1 else f"frame {k}")
             images = frames(k)
             read_s = time.perf_counter() - t0
             state, result, info = tracker.step(state, images)
@@ -347,6 +404,7 @@ def track_sequence(
             has_crop = info.get("offsets") is not None
             report(k, images, T, result.region_phi if has_crop else None, info["offsets"] if has_crop else None,
                    info.get("scales") if has_crop else None)
+            heartbeat.idle()
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(status=status[-1], conf=f"{conf[-1]:.2f}")
@@ -482,9 +540,14 @@ def track_objects(
                                     timings=timings[i][-1], crop=crops[i][-1])
             writer.end_frame()
 
-    with writer if writer is not None else contextlib.nullcontext():
+    from ..cues.lines import view_model_build_progress
+
+    heartbeat = _BarHeartbeat(bar)
+    with (writer if writer is not None else contextlib.nullcontext(), contextlib.closing(heartbeat),
+          view_model_build_progress(heartbeat.views)):
         t0 = time.perf_counter()
         images = frames(0)
+        heartbeat.busy("set-up")
         states = joint.start(images, starts)
         for i in range(N):
             poses[i].append(np.asarray(states[i].T_world_root, np.float64))
@@ -495,10 +558,12 @@ def track_objects(
             crops[i].append(None)
         save(0)
         report(0, images)
+        heartbeat.idle()
         if bar is not None:
             bar.update(1)
         for k in range(1, n):
             t0 = time.perf_counter()
+            heartbeat.busy(f"frame {k}: compiling or loading a program" if k == 1 else f"frame {k}")
             images = frames(k)
             read_s = time.perf_counter() - t0
             states, step_results, infos = joint.step(states, images)
@@ -512,6 +577,7 @@ def track_objects(
                 crops[i].append(None if info.get("crop_shape") is None else tuple(int(v) for v in info["crop_shape"]))
             save(k)
             report(k, images, step_results, infos)
+            heartbeat.idle()
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(status="/".join(s[-1] for s in status))

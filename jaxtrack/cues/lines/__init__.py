@@ -60,5 +60,6 @@ from ._viewmodel import load_view_model as load_view_model
 from ._viewmodel import nearest_view as nearest_view
 from ._viewmodel import points_for_pose as points_for_pose
 from ._viewmodel import save_view_model as save_view_model
+from ._viewmodel import view_model_build_progress as view_model_build_progress
 from ._viewmodel import view_model_path as view_model_path
 from ._viewmodel import view_points as view_points
