@@ -393,6 +393,6 @@ def test_view_model_build_refuses_unknown_meshes_and_tables_the_rounds(tmp_path,
     monkeypatch.setattr(vmb, "build_once", fake_build)
     out = tmp_path / "v.md"
     vmb.main(["--meshes", "box", "--rounds", "3", "--variant", "a=", "--variant", f"b={tmp_path}", "--out", str(out)])
-    row = [line for line in out.read_text().splitlines() if line.startswith("| box |")][0].split(" | ")
+    row = next(line for line in out.read_text().splitlines() if line.startswith("| box |")).split(" | ")
     assert row[1] == "12" and row[2].startswith("4.00 [3.0, 5.0, 4.0]") and row[3].startswith("2.00 [1.0, 2.0, 3.0]")
     assert row[4].strip(" |") == "no"
