@@ -65,7 +65,7 @@ def main(argv=None):
     ap.add_argument("--cold", action="store_true", help="every round from empty caches (no fill first)")
     ap.add_argument("--frames", type=int, default=3, help="frames of the sequence (the warm process tracks one)")
     ap.add_argument("--timeout", type=float, default=1200, help="seconds per process")
-    ap.add_argument("--title", default="Warm first frame: alternatives alternated")
+    ap.add_argument("--title", default=None, help="the report's title (default: Warm or Cold first frame: ...)")
     ap.add_argument("--out", default=str(RESULTS / "warm_start_ab.md"), help="markdown output")
     args = ap.parse_args(argv)
     variants = [parse_variant(v) for v in args.variant]
@@ -115,7 +115,8 @@ def main(argv=None):
 
 def report(args, command, variants, cameras, cold, warm, clock) -> str:
     med = lambda runs, key: float(np.median([r[key] for r in runs]))
-    lines = [f"# {args.title}", "", *report_header(command, clock.load_start, os.getloadavg(), clock.elapsed_s()), "",
+    title = args.title or f"{'Cold' if args.cold else 'Warm'} first frame: alternatives alternated"
+    lines = [f"# {title}", "", *report_header(command, clock.load_start, os.getloadavg(), clock.elapsed_s()), "",
              (f"bench_track's textured box, 640x480, cues {args.cues}; each process fresh, launched by this script; each variant "
               + ("with empty compile, exported-program, view-model and mesh caches in every round (`--cold`)"
                  if args.cold else "with its own compile, view-model and mesh caches filled by its cold process")

@@ -356,9 +356,10 @@ def test_warm_start_ab_reads_its_variants_and_pairs_the_rounds(tmp_path):
     assert "- b, 1 camera: [0.5, 0.75, 0.5]" in text
     assert "first frame, warm (s)" in text and "Cold fills" in text
     # --cold: every round from empty caches, no fill; the table says so and has no fill line.
-    Args.cold = True
+    Args.cold, Args.title = True, None  # no --title: the title says which
     text = ab.report(Args, "cmd", [("a", ""), ("b", "")], [1], {}, warm, Clock())
     assert "first frame, cold (s)" in text and "empty compile" in text and "Cold fills" not in text
+    assert text.startswith("# Cold first frame")
     assert "- b, 1 camera: [0.5, 0.75, 0.5]" in text
 
 
