@@ -221,6 +221,19 @@ class _BarHeartbeat:
                     self._wrote = True
 
 
+@contextlib.contextmanager
+def _kept_alive(bar):
+    """A `_BarHeartbeat` of `bar` for the block, hearing the view model's build (`view_model_build_progress`)."""
+    from ..cues.lines import view_model_build_progress
+
+    heartbeat = _BarHeartbeat(bar)
+    try:
+        with view_model_build_progress(heartbeat.views):
+            yield heartbeat
+    finally:
+        heartbeat.close()
+
+
 def track_sequence(
     sequence,
     *,
@@ -352,11 +365,8 @@ def track_sequence(
                                 joints_urdf=None if articulated is None else thetas[-1] / articulated["scale"])
             writer.end_frame()
 
-    from ..cues.lines import view_model_build_progress
-
-    heartbeat = _BarHeartbeat(bar)
     with (writer if writer is not None else contextlib.nullcontext(),  # rows on disk as they come; complete at the end
-          contextlib.closing(heartbeat), view_model_build_progress(heartbeat.views)):
+          _kept_alive(bar) as heartbeat):
         start = time.perf_counter()
         images = frames(0)
         heartbeat.busy("set-up")
@@ -540,11 +550,7 @@ def track_objects(
                                     timings=timings[i][-1], crop=crops[i][-1])
             writer.end_frame()
 
-    from ..cues.lines import view_model_build_progress
-
-    heartbeat = _BarHeartbeat(bar)
-    with (writer if writer is not None else contextlib.nullcontext(), contextlib.closing(heartbeat),
-          view_model_build_progress(heartbeat.views)):
+    with writer if writer is not None else contextlib.nullcontext(), _kept_alive(bar) as heartbeat:
         t0 = time.perf_counter()
         images = frames(0)
         heartbeat.busy("set-up")
