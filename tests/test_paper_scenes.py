@@ -86,6 +86,43 @@ def test_map_scores_counts_and_undefined_cases():
     assert np.isnan(nothing["precision"]) and nothing["recall"] == 0.0 and nothing["iou"] == 0.0
     empty = occlusion.map_scores(np.zeros_like(truth), np.zeros_like(truth))
     assert np.isnan(empty["precision"]) and np.isnan(empty["recall"]) and np.isnan(empty["iou"])
+    # Decidable: the true occluded pixels on seen surface; the recall there counts only those.
+    seen = np.zeros_like(truth)
+    seen[:, :4] = True  # 6 of the 12 true pixels (columns 2-3)
+    d = occlusion.map_scores(shifted, truth, seen)
+    assert (d["decidable"], d["tp_decidable"]) == (6, 3) and d["recall_decidable"] == 0.5  # shifted covers column 3
+    assert "decidable" not in s and np.isnan(occlusion.map_scores(truth, truth, np.zeros_like(truth))["recall_decidable"])
+
+
+@pytest.mark.xdist_group("tracker_quick")
+def test_seen_surface_is_the_model_silhouette_where_the_appearance_model_knows_the_texel(tmp_path):
+    """After `start` at the true pose the appearance model has seen part of what that frame shows: the seen pixels lie
+    on the object's silhouette, its back half-turned towards the camera is unseen, and an empty model has seen nothing."""
+    occlusion, tp = _load("occlusion"), _load("track_presets")
+    from jaxtrack.cues.occlusion import init_appearance
+    from jaxtrack.geometry import make_camera, stack_cameras
+    from jaxtrack.io import load_mesh, read_sequence
+    from jaxtrack.track import Tracker, TrackerConfig
+
+    seq = read_sequence(tp.write_preset("occluded-box", tp.preset_config("occluded-box", 0.15, 2), tmp_path))
+    view = seq.views[0]
+    rig = stack_cameras([make_camera(view.K, view.width, view.height, view.T_cam_world[:3, :3], view.T_cam_world[:3, 3])])
+    mesh = load_mesh(seq.model_paths[1])
+    tracker = Tracker(mesh, rig, config=TrackerConfig(cues=("region",)))
+    T0 = np.linalg.inv(np.asarray(view.T_cam_world, np.float64)) @ np.asarray(view.T_cam_obj[1][0], np.float64)
+    state = tracker.start(view.read_frame(0)[None], T0)
+    seen_at = occlusion.seen_surface(tracker)
+    seen = np.asarray(seen_at(state.appearance, T0))
+    silhouette = occlusion.read_mask(view.folder / "object_mask" / f"{int(view.frame_ids[0]):06d}.png")  # the generator's
+    grown = np.zeros_like(silhouette)  # a pixel of rasterisation either way at the edge (two renderers)
+    for dy, dx in np.ndindex(3, 3):
+        grown |= np.roll(np.roll(silhouette, dy - 1, 0), dx - 1, 1)
+    assert seen.shape == silhouette.shape and seen.any()
+    assert grown[seen].all()
+    # Turned half a revolution about its own x or y axis the box shows the faces the first frame did not: unseen.
+    for half_turn in (np.diag([-1.0, 1.0, -1.0, 1.0]), np.diag([1.0, -1.0, -1.0, 1.0])):  # about the box's y, x axes
+        assert np.asarray(seen_at(state.appearance, T0 @ half_turn)).sum() <= 0.02 * seen.sum()
+    assert not np.asarray(seen_at(init_appearance(tracker.atlas, state.appearance.texture.dtype), T0)).any()
 
 
 # --- smoke runs ----------------------------------------------------------------------------------------------------
