@@ -186,8 +186,8 @@ def report(command, args, size, diameter, runs, skipped, failed, load_start, loa
             "",
             ((f"Decidable: {decidable} of the {tp_ + fn} true occluded pixels ({_num(decidable / max(tp_ + fn, 1))}) lie on "
               "surface the appearance model had seen (at the true pose, in the model f_(t-1) the frame's test reads); the "
-              "others are on texels never seen unoccluded, which eq. 9 leaves undecided, so the recall cannot exceed "
-              f"{_num(decidable / max(tp_ + fn, 1))}. Recall on the decidable pixels: {_num(found / max(decidable, 1))} "
+              "others are on texels never seen unoccluded, which eq. 9 leaves undecided, so at the true poses its recall could "
+              f"not exceed {_num(decidable / max(tp_ + fn, 1))} (at the tracked poses the model is read elsewhere). Recall on the decidable pixels: {_num(found / max(decidable, 1))} "
               f"({found} found).") if measured else
              "Decidable pixels: not measured (the detection did not run: no configured modality reads its maps)."),
             "",
@@ -211,7 +211,7 @@ def report(command, args, size, diameter, runs, skipped, failed, load_start, loa
          "Precision n/a: nothing detected; recall n/a: no true occlusion in that frame."),
         ("- Decidable: true occluded pixels whose surface texel the appearance model f_(t-1) had seen, at the true pose "
          "of the frame on the full frame (`seen_surface`); the test of eq. 9 cannot flag the rest (unknown texels are "
-         "neither occluded nor visible to it), so the recall against the masks is bounded by the decidable fraction."),
+         "neither occluded nor visible to it), so at the true poses the recall against the masks is bounded by the decidable fraction."),
         ("- Without detection the tracker's own switch `TrackerConfig(occlusion=False)` is used (a separately compiled step); "
          "it has no maps." + (" Not run in --quick (it would compile a second program)." if args.quick else "")),
         f"- Picture: {args.plot or 'experiments/results/occlusion.png'} (errors over frames, map scores, and the frame with the most true "
