@@ -554,6 +554,46 @@ def test_the_loss_evidence_carries_its_running_average(sequence, lines_sift):
 
 
 @pytest.mark.xdist_group("lines_sift")
+def test_the_late_rounds_without_motion_rows_need_a_confident_last_frame(sequence, lines_sift):
+    """`TrackerParams.motion_late_above`: the motion rows leave the refinement after `motion_rounds` (× the late factor)
+    only when the frame before read at least that confidence (`TrackerState.last_confidence`, 0 at `start`); below
+    it the step is the one with the motion rows in every round. The state carries the frame's confidence on. The
+    same compiled step for every gate and confidence (arrays)."""
+    from jaxtrack.track._step import motion_rounds_for
+
+    tracker, state, first = lines_sift
+    assert float(state.last_confidence) == pytest.approx(float(first.confidence))
+    params = tracker.params_for(tracker.crop_shape)
+    dtype = params.motion_late_factor.dtype
+    every = eqx.tree_at(lambda p: p.motion_rounds, params, jnp.asarray(np.inf, dtype))
+    split = eqx.tree_at(lambda p: (p.motion_rounds, p.motion_late_factor), params, (jnp.asarray(1.0, dtype), jnp.zeros((), dtype)))
+    gated = eqx.tree_at(lambda p: p.motion_late_above, split, jnp.asarray(0.9, dtype))
+    assert float(motion_rounds_for(None, gated)) == np.inf and float(motion_rounds_for(None, split)) == 1.0
+    assert float(motion_rounds_for(jnp.asarray(0.9), gated)) == 1.0 and float(motion_rounds_for(jnp.asarray(0.89), gated)) == np.inf
+    saved = dict(vars(tracker))  # the group's other tests use this tracker: its motion memory is put back after,
+    saved_cache = copy.deepcopy(tracker.host_cache)  # and SIFT's keypoint cache, which the step fills in place
+    traces = eqx.debug.get_num_traces(jt.track.track_step)
+    poses = {}
+    try:
+        for name, p, last in (("every", every, 0.95), ("split", split, 0.5), ("gated, sure", gated, 0.95),
+                              ("gated, unsure", gated, 0.5)):
+            tracker.last_box_motion = saved["last_box_motion"]
+            tracker.host_cache = copy.deepcopy(saved_cache)
+            s = eqx.tree_at(lambda s: s.last_confidence, state, jnp.asarray(last, state.last_confidence.dtype))
+            new_state, result, _ = tracker.step(s, sequence["images"][2], params=p, recover=False)
+            poses[name] = np.asarray(result.T_world_root)
+            assert float(new_state.last_confidence) == pytest.approx(float(result.confidence))
+    finally:
+        vars(tracker).clear()
+        vars(tracker).update(saved)
+        tracker.host_cache = saved_cache
+    assert eqx.debug.get_num_traces(jt.track.track_step) == traces
+    assert np.abs(poses["every"] - poses["split"]).max() > 1e-3  # the split moves the pose: the gate has work to do
+    np.testing.assert_array_equal(poses["gated, sure"], poses["split"])
+    np.testing.assert_array_equal(poses["gated, unsure"], poses["every"])
+
+
+@pytest.mark.xdist_group("lines_sift")
 def test_confidence_falls_with_a_controlled_misalignment(sequence, lines_sift):
     """With every cue weight 0 the step cannot move the pose (no rows): its evidence and confidence are those of
     the pose it was given, turned by 0-30° from the tracked one on the same frame. The confidence falls

@@ -339,6 +339,11 @@ class TrackerParams(eqx.Module):
             motion_rounds − 1 and × motion_late_factor after (`jaxtrack.modality.RefineSettings.motion_rounds`);
             ∞: every round (the method; the field's default, and `default_params`' for chains; rigid objects take
             `jaxtrack.track._tracker.MOTION_ROUNDS` / `MOTION_LATE_FACTOR`, ∞ / 0 unless the environment says).
+        motion_late_above: motion_rounds and motion_late_factor apply to a frame only when the confidence of the frame
+            before (`TrackerState.last_confidence`) is at least this: the contour finishes the refinement alone where the
+            tracker was sure of the last frame, and the motion rows hold every round where it was not, or where no frame
+            has been measured yet (the first frame after `start` or a recovery, 0); 0: always (the field's default;
+            rigid objects take `jaxtrack.track._tracker.MOTION_LATE_ABOVE`). `motion_rounds_for` applies it.
     """
 
     weights: CueWeights
@@ -371,6 +376,16 @@ class TrackerParams(eqx.Module):
     motion_robust_px: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(-1.0))
     motion_rounds: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(jnp.inf))
     motion_late_factor: jax.Array = eqx.field(default_factory=lambda: jnp.zeros(()))
+    motion_late_above: jax.Array = eqx.field(default_factory=lambda: jnp.zeros(()))
+
+
+def motion_rounds_for(last_confidence, params: TrackerParams) -> jax.Array:
+    """The refinement's `motion_rounds` for a frame after one of confidence `last_confidence` (() array, or None: no
+    frame measured yet, read as 0): `params.motion_rounds` where that is at least `params.motion_late_above`, else ∞
+    (the motion rows count in every round). Jittable."""
+    previous = jnp.zeros(()) if last_confidence is None else jnp.asarray(last_confidence)
+    rounds = jnp.asarray(params.motion_rounds)
+    return jnp.where(previous >= params.motion_late_above, rounds, jnp.full_like(rounds, jnp.inf))
 
 
 class TrackerSetup(eqx.Module):
@@ -417,6 +432,8 @@ class TrackerState(eqx.Module):
             line modality leaves out the lines it hides (`FrameContext.occluder_depth`).
         loss_evidence_average: (len(LOSS_FRAME_EVIDENCE),) the running average of the frames' loss evidence up to t
             (`LOSS_EVIDENCE_DECAY`; zeros at `Tracker.start` and after a recovery, a new start); None reads as zeros.
+        last_confidence: () `FrameResult.confidence` of frame t, the gate of `TrackerParams.motion_late_above`; 0 at
+            `Tracker.start` and after a recovery (no frame measured yet); None reads as 0.
     """
 
     T_world_root: jax.Array
@@ -428,6 +445,7 @@ class TrackerState(eqx.Module):
     modalities: tuple
     occluder_depth: jax.Array | None = None
     loss_evidence_average: jax.Array | None = None
+    last_confidence: jax.Array | None = None
 
 
 class FrameResult(eqx.Module):
@@ -715,7 +733,7 @@ def track_step(
                                   params.pose_prior_rotation, params.pose_prior_translation, params.render_reuse_px,
                                   params.pose_prior_rotation_abs, params.pose_prior_translation_abs,
                                   params.prior_follows_round, params.depth_invariant, params.motion_robust_px,
-                                  params.motion_rounds, params.motion_late_factor,
+                                  motion_rounds_for(state.last_confidence, params), params.motion_late_factor,
                                   depth_scaled=config.depth_invariance is not False)
         res = refine_rounds(modalities, ctx, state.modalities, data, Pose(T_pred, theta_pred.astype(dtype)), params, settings,
                             rounds, steps, min_rounds=min_rounds, contexts=contexts)
@@ -857,7 +875,7 @@ def track_step(
         counts = jnp.stack([_counts(fused, num_cams, m.cue) for m in modalities], -1).astype(jnp.int32)
     new_state = TrackerState(T_new, theta_new, frames_in.astype(state.images.dtype), data_weight, visible, appearance,
                              modality_states, occluder_depth=state.occluder_depth,
-                             loss_evidence_average=evidence_average)
+                             loss_evidence_average=evidence_average, last_confidence=jnp.asarray(confidence, dtype))
     result = FrameResult(
         T_world_root=T_new, theta=theta_new, T_pred=T_pred, theta_pred=theta_pred, status=status.astype(jnp.int32),
         confidence=confidence, iou=iou, counts=counts, motion_inliers=inliers,

@@ -163,6 +163,9 @@ def _env_number(name: str, default: str, low: float, high: float) -> float:
 
 MOTION_ROUNDS = _env_number("JAXTRACK_MOTION_ROUNDS", "inf", 0.0, float("inf"))
 MOTION_LATE_FACTOR = _env_number("JAXTRACK_MOTION_LATE_FACTOR", "0", 0.0, 1.0)
+# The confidence of the frame before that the two above need (`TrackerParams.motion_late_above`; 0: every frame);
+# $JAXTRACK_MOTION_LATE_ABOVE sets another default.
+MOTION_LATE_ABOVE = _env_number("JAXTRACK_MOTION_LATE_ABOVE", "0", 0.0, 1.0)
 
 
 def _as_array(scales):
@@ -331,6 +334,7 @@ def default_params(
         motion_robust_px=device(MOTION_ROBUST_PX if J == 0 else -1.0),
         motion_rounds=device(MOTION_ROUNDS if J == 0 else np.inf),
         motion_late_factor=device(MOTION_LATE_FACTOR),
+        motion_late_above=device(MOTION_LATE_ABOVE),
     )
 
 
@@ -742,7 +746,12 @@ class Tracker:
             T_world_root=T, theta=theta, images=to_device(self._frames_as_state(frames)),
             data_weight=to_device(np.ones((self.num_cameras, H, W), self.dtype)), visible=sil, appearance=appearance,
             modalities=states, occluder_depth=occluder_depth, loss_evidence_average=self._no_loss_evidence(),
+            last_confidence=self._no_confidence(),
         )
+
+    def _no_confidence(self) -> jax.Array:
+        """() zero: `TrackerState.last_confidence` of a start (no frame measured yet)."""
+        return to_device(np.zeros((), self.dtype))
 
     def _no_loss_evidence(self) -> jax.Array:
         """(len(LOSS_FRAME_EVIDENCE),) zeros: `TrackerState.loss_evidence_average` of a start (the pose is known)."""
@@ -780,7 +789,8 @@ class Tracker:
         state_like = TrackerState(
             T_world_root=T, theta=theta, images=self._frames_as_state(frames),
             data_weight=np.ones((self.num_cameras, H, W), self.dtype), visible=sil_like[0], appearance=sil_like[1],
-            modalities=states_like, occluder_depth=occluder_depth, loss_evidence_average=self._no_loss_evidence())
+            modalities=states_like, occluder_depth=occluder_depth, loss_evidence_average=self._no_loss_evidence(),
+            last_confidence=self._no_confidence())
         saved, self.host_cache = self.host_cache, {}
         try:
             host_like = self.host_inputs(state_like, frames)  # frame t+1's shape: the first frame's
@@ -1175,9 +1185,10 @@ class Tracker:
         for c, (x0, y0, x1, y1) in enumerate(np.clip(np.nan_to_num(boxes), 0, [W - 1, H - 1, W - 1, H - 1]).astype(int)):
             visible[c, y0:y1 + 1, x0:x1 + 1] = on_screen[c]
         # a new start from the found pose: the running loss evidence starts over, as at `start`
-        restart = eqx.tree_at(lambda s: (s.T_world_root, s.images, s.data_weight, s.visible, s.loss_evidence_average),
+        restart = eqx.tree_at(lambda s: (s.T_world_root, s.images, s.data_weight, s.visible, s.loss_evidence_average,
+                                         s.last_confidence),
                               state, (T_found, frames_j, jnp.ones_like(state.data_weight), jnp.asarray(visible),
-                                      self._no_loss_evidence()), is_leaf=lambda x: x is None)
+                                      self._no_loss_evidence(), self._no_confidence()), is_leaf=lambda x: x is None)
         host_cache = copy.deepcopy(self.host_cache)  # what the step from the found pose detects is kept only if taken
         new_state, result, _ = self._run_step(restart, frames, frames_j, offsets, params, crop_shape, scales)
         info["windows"] = (offsets, crop_shape, scales)
