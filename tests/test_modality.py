@@ -379,14 +379,24 @@ def test_the_robust_prediction_is_not_pulled_by_rows_of_a_second_motion():
 
 
 def test_the_motion_rounds_default_to_every_round_and_a_bad_environment_value_names_its_variable(monkeypatch):
-    """The tracker's defaults keep the motion rows in every round (K = ∞, f = 0 unused), chains too; an opt-in value
-    from the environment is checked with a message naming the variable."""
+    """The tracker's defaults keep the motion rows in every round (K = ∞, f = 0 unused, no confidence gate), chains
+    too; `late_rounds` sets (K, f, τ) and is checked; an opt-in value from the environment is checked with a message
+    naming the variable."""
     from jaxtrack.track import default_params
     from jaxtrack.track._tracker import _env_number
 
     for model in (jt.rigid_model(jnp.float64), jt.chain_model([-1, 0], [(0.0, 0.0, 1.0)], [(0.0, 0.0, 0.0)], jnp.float64)):
         p = default_params(model, (96, 128), jnp.float64)
         assert np.isinf(float(p.motion_rounds)) and float(p.motion_late_factor) == 0.0
+        assert float(p.motion_late_above) == 0.0
+        # `late_rounds` = (K, f[, τ]) sets the three, chains too (an explicit choice); τ is 0 unless given
+        q = default_params(model, (96, 128), jnp.float64, late_rounds=(3, 0.3, 0.9))
+        assert (float(q.motion_rounds), float(q.motion_late_factor), float(q.motion_late_above)) == (3.0, 0.3, 0.9)
+        q = default_params(model, (96, 128), jnp.float64, late_rounds=(2, 0.0))
+        assert (float(q.motion_rounds), float(q.motion_late_factor), float(q.motion_late_above)) == (2.0, 0.0, 0.0)
+    for bad in ((3,), (3, 1.5), (-1, 0.3), (float("nan"), 0.3), (3, 0.3, 2.0), (3, 0.3, 0.9, 1.0)):
+        with pytest.raises(ValueError, match="late_rounds must be"):
+            default_params(jt.rigid_model(jnp.float64), (96, 128), jnp.float64, late_rounds=bad)
     monkeypatch.setenv("JAXTRACK_MOTION_ROUNDS", "3")
     assert _env_number("JAXTRACK_MOTION_ROUNDS", "inf", 0.0, float("inf")) == 3.0
     for bad in ("", "three", "nan", "-1"):

@@ -49,8 +49,9 @@ class _FakeTracker:
     built: typing.ClassVar[list] = []
     truth = None  # callable frame index -> (4, 4) true world pose, set by the fixture
 
-    def __init__(self, mesh, cameras, model=None, config=None, params=None, joint_limits=None):
+    def __init__(self, mesh, cameras, model=None, config=None, params=None, joint_limits=None, **options):
         self.cues, self.num_cameras, self.k, self.config = config.cues, cameras.K.shape[0], 0, config
+        self.options = options  # pose_prior, late_rounds: passed only when given
         _FakeTracker.built.append(self)
 
     def start(self, frames, T_world_root, theta=None):
@@ -249,6 +250,10 @@ def test_track_refuses_bad_input_before_tracking(seq_dir, fake, tmp_path, capsys
         (["--cameras", "0,-1"], "argument --cameras: expected distinct view indices ≥ 0"),
         (["--cameras", "a"], "argument --cameras: expected comma-separated view indices"),
         (["--max-frames", "0"], "argument --max-frames: must be ≥ 1, got 0"),
+        (["--late-rounds", "3"], "argument --late-rounds: expected K,F\\[,T\\]: K ≥ 0"),
+        (["--late-rounds", "3,1.5"], "argument --late-rounds: expected K,F\\[,T\\]: K ≥ 0 \\(inf: every round\\), F and T in"),
+        (["--late-rounds=-1,0.3,0.9"], "argument --late-rounds: expected K,F\\[,T\\]: K ≥ 0"),
+        (["--late-rounds", "3,0.3,x"], "argument --late-rounds: expected K,F\\[,T\\] \\(numbers\\)"),
     ],
 )
 def test_track_option_values(seq_dir, fake, tmp_path, capsys, argv, message):
@@ -257,6 +262,18 @@ def test_track_option_values(seq_dir, fake, tmp_path, capsys, argv, message):
     assert exit_info.value.code == 2
     assert re.search("jaxtrack track: error: " + message, capsys.readouterr().err)
     assert not fake.built
+
+
+def test_late_rounds_reach_the_tracker_only_when_given(seq_dir, fake, tmp_path):
+    """`--late-rounds K,F[,T]` is handed to the tracker as `late_rounds` (K = inf allowed); without it the tracker
+    gets no such option (its defaults: every round)."""
+    assert main(["track", str(seq_dir), "-o", str(tmp_path / "a.csv"), "--late-rounds", "3,0.3,0.9", "--quiet",
+                 "--no-cache"]) == 0
+    assert fake.built[-1].options == {"late_rounds": (3.0, 0.3, 0.9)}
+    assert main(["track", str(seq_dir), "-o", str(tmp_path / "b.csv"), "--late-rounds", "inf,0", "--quiet", "--no-cache"]) == 0
+    assert fake.built[-1].options == {"late_rounds": (float("inf"), 0.0)}
+    assert main(["track", str(seq_dir), "-o", str(tmp_path / "c.csv"), "--quiet", "--no-cache"]) == 0
+    assert fake.built[-1].options == {}
 
 
 def test_track_names_a_missing_or_broken_sequence(fake, tmp_path, seq_dir, capsys):

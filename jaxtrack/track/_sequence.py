@@ -246,6 +246,7 @@ def track_sequence(
     init_joints: dict | None = None,
     joint_limits: bool = False,
     pose_prior: tuple | None = None,
+    late_rounds: tuple | None = None,
     region: str | None = None,
     working_shape: tuple[int, int] | None | str = "default",
     reset_on_failure: bool = False,
@@ -273,6 +274,9 @@ def track_sequence(
             size classes, "default": `TrackerConfig`'s; ignored when `config` is given.
         pose_prior: (rotation, translation) relative stiffnesses of the pose prior (default
             `jaxtrack.track.DEFAULT_POSE_PRIOR`; ignored when `params` is given).
+        late_rounds: (K, f[, τ]): the flow and SIFT rows × f after K refinement rounds on frames after one of
+            confidence ≥ τ (`jaxtrack.track.default_params`; default: every round, the method; ignored when `params`
+            is given).
         reset_on_failure: the RBOT protocol (needs ground truth for every frame).
         recovery: search after a LOST frame (True: `TrackerConfig.recovery` = `RecoveryConfig()`) or not (False);
             None (the default): on, except with `reset_on_failure` (the oracle's resets are measured without the
@@ -337,7 +341,8 @@ def track_sequence(
         config = config.without_recovery()  # asked not to, or the oracle resets instead of the search
     limits = (articulated["lower"], articulated["upper"]) if joint_limits else None
     tracker = Tracker(mesh, rig, model=model, config=config, params=params, joint_limits=limits,
-                      **({} if pose_prior is None else {"pose_prior": pose_prior}))
+                      **({} if pose_prior is None else {"pose_prior": pose_prior}),
+                      **({} if late_rounds is None else {"late_rounds": late_rounds}))
     T_world_gt = None if gt is None else np.einsum("ij,fjk->fik", np.linalg.inv(T_cam0_world), gt)
 
     frames = _frame_reader(seq, views)
@@ -442,6 +447,7 @@ def track_objects(
     region: str | None = None,
     working_shape: tuple[int, int] | None | str = "default",
     pose_prior: tuple | None = JOINT_POSE_PRIOR,
+    late_rounds: tuple | None = None,
     max_frames: int | None = None,
     progress: bool = True,
     on_frame: Callable[[list[FrameRecord]], object] | None = None,
@@ -456,6 +462,7 @@ def track_objects(
         init_poses: {obj_id: (4, 4) model → camera-0 pose of the first frame} (default: the ground truth).
         on_frame: called after every frame with one `FrameRecord` per object (in `obj_ids` order).
         pose_prior: the refinement's pose prior (default `JOINT_POSE_PRIOR`, M3T's; None: the tracker's default, none).
+        late_rounds: (K, f[, τ]) of every object's tracker, as `track_sequence`'s (default: every round).
         results: NAME.csv written frame by frame (every object's rows), as `track_sequence`'s.
         cues, cameras, config, region, working_shape, max_frames, progress: as `track_sequence`.
 
@@ -507,7 +514,8 @@ def track_objects(
         mesh = load_mesh(path, seq.model_scale(o))
         check_first_pose(np.asarray(mesh.vertices, np.float64), view0.K, view0.width, view0.height, T0, source,
                          diameter_mm=_info_diameter(seq, o))
-        trackers.append(Tracker(mesh, rig, config=config, **({} if pose_prior is None else {"pose_prior": pose_prior})))
+        trackers.append(Tracker(mesh, rig, config=config, **({} if pose_prior is None else {"pose_prior": pose_prior}),
+                                **({} if late_rounds is None else {"late_rounds": late_rounds})))
         starts.append(np.linalg.inv(T_cam0_world) @ T0)
     joint = JointTracker(trackers)
     T_cam_world = np.stack([np.asarray(seq.views[c].T_cam_world, np.float64) for c in views])

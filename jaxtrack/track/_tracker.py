@@ -261,6 +261,7 @@ RENDER_REUSE_PX = 0.0
 def default_params(
     model: KinematicModel, crop_shape: tuple[int, int] = (256, 256), dtype=jnp.float32, weights: CueWeights | None = None,
     occlusion: OcclusionParams | None = None, joint_limits: tuple | None = None, pose_prior: tuple | None = None,
+    late_rounds: tuple | None = None,
 ) -> TrackerParams:
     """The method's parameters: quadratic flow smoothness α = 800 for a rigid object, robust α = 50 for
     a chain (β = 12 / 3), region λ = 0.05, ν = 0.001 |Ω|^0.7 (Ω the crop), ρ = 12, occlusion 1/4 and 1/8.
@@ -283,6 +284,12 @@ def default_params(
 
     SIFT rows come from every keypoint on the object (`SiftParams.boundary_px` = 0): 2 px inside their part
     measured mixed on the mocap human (README "Table II at the paper's length, and what turns the walk's right foot").
+
+    `late_rounds` = (K, f[, τ]): the flow and SIFT rows count fully in the refinement's first K rounds and × f after,
+    on frames after one of confidence ≥ τ (0 if not given) (`TrackerParams.motion_rounds`, `motion_late_factor`,
+    `motion_late_above`); by default `MOTION_ROUNDS` / `MOTION_LATE_FACTOR` / `MOTION_LATE_ABOVE` for rigid objects
+    (∞: every round, the method) and ∞ for chains. (3, 0.3, 0.9) is the opt-in measured in the README ("The late
+    rounds only after a confident frame"), for footage whose contour one trusts.
     """
     if weights is None:
         weights = CueWeights(flow=TRACKER_FLOW_FACTOR)
@@ -292,13 +299,19 @@ def default_params(
     if len(prior) != 5 or not all(np.isfinite(v) and v >= 0 for v in prior):
         raise ValueError(f"pose_prior must be (rotation, translation[, rotation_abs, translation_abs, follows_round]), "
                          f"finite numbers ≥ 0, got {pose_prior}")
+    J = model.num_joints
+    late = (MOTION_ROUNDS if J == 0 else np.inf, MOTION_LATE_FACTOR, MOTION_LATE_ABOVE)
+    if late_rounds is not None:
+        late = tuple(float(v) for v in late_rounds) + ((0.0,) if len(late_rounds) == 2 else ())
+        if (len(late) != 3 or np.isnan(late[0]) or late[0] < 0 or not all(np.isfinite(v) and 0 <= v <= 1 for v in late[1:])):
+            raise ValueError(f"late_rounds must be (K, f[, τ]): K ≥ 0 rounds (inf: every round), the factor f and the "
+                             f"confidence τ in [0, 1], got {late_rounds}")
     flow = rigid_params() if model.num_joints == 0 else articulated_params()
     def device(a):
         return to_device(a, dtype)
 
     flow = jax.tree.map(device, flow)
     beta = 3.0 if flow.robust_smoothness else 12.0
-    J = model.num_joints
     lower, upper = device(np.full((J,), -np.inf)), device(np.full((J,), np.inf))
     if joint_limits is not None:
         lo, hi = (np.asarray(a, np.float64) for a in joint_limits)
@@ -335,9 +348,9 @@ def default_params(
         rows_per_px=device(ROWS_PER_PX),
         depth_invariant=device(DEPTH_INVARIANT if J == 0 else 0.0),
         motion_robust_px=device(MOTION_ROBUST_PX if J == 0 else -1.0),
-        motion_rounds=device(MOTION_ROUNDS if J == 0 else np.inf),
-        motion_late_factor=device(MOTION_LATE_FACTOR),
-        motion_late_above=device(MOTION_LATE_ABOVE),
+        motion_rounds=device(late[0]),
+        motion_late_factor=device(late[1]),
+        motion_late_above=device(late[2]),
     )
 
 
@@ -362,6 +375,8 @@ class Tracker:
         joint_limits: (lower, upper) (J,) joint limits in model units for the default parameters (none by
             default: the method uses no priors).
         pose_prior: (rotation, translation) relative stiffnesses of the pose prior for the default parameters.
+        late_rounds: (K, f[, τ]) of the default parameters: the motion rows × f after K refinement rounds, on frames
+            after a confident one (`default_params`; default: the method, every round).
 
     Attributes (settable):
         overlap_host: dispatch `start_frame` (crops, render at χ_t, the flow) before the host makes its inputs (SIFT),
@@ -393,7 +408,8 @@ class Tracker:
 
     def __init__(self, mesh: Mesh, cameras: Camera, model: KinematicModel | None = None, config: TrackerConfig | None = None,
                  params: TrackerParams | None = None, sift: SiftConfig | None = None, margin: int = 24,
-                 texel_mm: float | None = None, joint_limits: tuple | None = None, pose_prior: tuple | None = None):
+                 texel_mm: float | None = None, joint_limits: tuple | None = None, pose_prior: tuple | None = None,
+                 late_rounds: tuple | None = None):
         if not isinstance(mesh, Mesh):
             raise TypeError(f"mesh must be a jaxtrack.render.Mesh (see make_mesh / io.load_mesh), got {type(mesh).__name__}")
         self.mesh = mesh
@@ -422,6 +438,7 @@ class Tracker:
         self.joint_limits = joint_limits
         self.prepared: tuple | None = None
         self.pose_prior = pose_prior
+        self.late_rounds = late_rounds
         self.last_good_pose = None  # (4, 4) the last pose reported OK (or RECOVERED): a recovery's second reference
         self._boxes_memo = None  # (pose bytes, (C, 4) boxes) of the last projected pose (`_boxes_at`)
         self._step_config_memo = None  # (config, the same without recovery) (`_step_config`)
@@ -450,8 +467,9 @@ class Tracker:
         self.rectangular_texels = os.environ.get("JAXTRACK_RECTANGULAR_TEXELS", "0") == "1"
         self.cull_backfaces = os.environ.get("JAXTRACK_CULL_BACKFACES", "1") != "0" and hides_its_back_faces(self.mesh)
         self.keyframes: KeyframeModel | None = None  # SIFT keyframes for the re-detection (`RecoveryConfig.keyframes`)
-        if joint_limits is not None or pose_prior is not None:  # checked now, not at the first frame
-            default_params(self.model, (64, 64), self.dtype, joint_limits=joint_limits, pose_prior=pose_prior)
+        if joint_limits is not None or pose_prior is not None or late_rounds is not None:  # checked now, not at frame 1
+            default_params(self.model, (64, 64), self.dtype, joint_limits=joint_limits, pose_prior=pose_prior,
+                           late_rounds=late_rounds)
 
     @property
     def num_cameras(self) -> int:
@@ -683,7 +701,7 @@ class Tracker:
             return self.user_params
         if crop_shape not in self._default_params:  # built once per crop size, not per frame
             params = default_params(self.model, crop_shape, self.dtype, joint_limits=self.joint_limits,
-                                    pose_prior=self.pose_prior)
+                                    pose_prior=self.pose_prior, late_rounds=self.late_rounds)
             if self.config.depth_invariance is False:  # the solves take no depth scaling: the defaults say so
                 params = eqx.tree_at(lambda p: p.depth_invariant, params, jnp.zeros_like(params.depth_invariant))
             self._default_params[crop_shape] = params
