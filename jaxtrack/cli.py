@@ -769,7 +769,8 @@ def _cmd_bench(args) -> int:
                                                                             "off": (False,)}[resets],
         cues=tuple(args.cues), region=args.region,
         working_shape=args.working_shape if args.working_shape in ("default", None) else tuple(args.working_shape),
-        pose_prior=None if args.pose_prior is None else tuple(args.pose_prior), recovery=args.recover,
+        pose_prior=None if args.pose_prior is None else tuple(args.pose_prior),
+        late_rounds=None if args.late_rounds is None else tuple(args.late_rounds), recovery=args.recover,
         max_frames=args.max_frames)
     workers = args.workers
     if workers is None and not args.address:
@@ -1194,6 +1195,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--working-shape", dest="working_shape", metavar="HxW|native", type=_working_shape,
                        default="default", help="as jaxtrack track")
     bench.add_argument("--pose-prior", dest="pose_prior", metavar="R,T[,RA,TA,F]", type=_prior_pair, help="as jaxtrack track")
+    bench.add_argument("--late-rounds", dest="late_rounds", metavar="K,F[,T]", type=_late_rounds, help="as jaxtrack track")
     bench.add_argument("--recover", action=argparse.BooleanOptionalAction, default=None,
                        help="as jaxtrack track (on by default for the runs without resets)")
     bench.add_argument("--max-frames", dest="max_frames", metavar="N", type=_number(int, 2),

@@ -221,3 +221,20 @@ def test_recover_is_on_by_default_and_can_be_turned_off():
         assert parser.parse_args([command, "seq"]).recover is None
         assert parser.parse_args([command, "seq", "--recover"]).recover is True
         assert parser.parse_args([command, "seq", "--no-recover"]).recover is False
+
+
+def test_late_rounds_are_an_option_of_track_and_bench_and_a_bench_setting():
+    """`--late-rounds K,F[,T]` parses for `jaxtrack track` and `jaxtrack bench` (None by default: every round); the
+    bench keeps it among the settings a resumed bench must share, and refuses a bad value before any job."""
+    from jaxtrack.bench import BenchSettings
+    from jaxtrack.cli import build_parser
+
+    parser = build_parser()
+    for command in ("track", "bench"):
+        assert parser.parse_args([command, "seq"]).late_rounds is None
+        assert parser.parse_args([command, "seq", "--late-rounds", "3,0.3,0.9"]).late_rounds == (3.0, 0.3, 0.9)
+    assert BenchSettings().tracker_dict()["late_rounds"] is None
+    assert BenchSettings(late_rounds=(3, 0.3, 0.9)).tracker_dict()["late_rounds"] == [3, 0.3, 0.9]
+    for bad in ((3, 2.0), (-1, 0.3), (3,), "fast"):
+        with pytest.raises(ValueError, match="--late-rounds: late_rounds must be"):
+            BenchSettings(late_rounds=bad)

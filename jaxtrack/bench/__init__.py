@@ -177,6 +177,7 @@ def run_bench(dataset: str | os.PathLike, out: str | os.PathLike, settings: Benc
               f"{settings.protocol}; cues {'+'.join(settings.cues)}"
               + (f", region {settings.region}" if settings.region else "")
               + (f", pose prior {list(settings.pose_prior)}" if settings.pose_prior else "")
+              + (f", late rounds (K, f, τ) {list(settings.late_rounds)}" if settings.late_rounds else "")
               + ("; the runs without resets search after a LOST frame (with the lines)" if settings.recovery is not False else "") + ".",
               f"Ran {len(todo)} job(s) in {wall:.1f} s on {executor}; {len(skipped)} found finished; {len(failed)} failed.",
               ("Success: frames after the first within 5 cm / 5° of the truth. AUC: ADD / ADD-S accuracy over thresholds "

@@ -20,7 +20,7 @@ from ._datasets import BenchItem
 
 PROTOCOLS = ("rbot", "bop")
 AUC_MAX_MM = 100.0  # ADD / ADD-S AUC over thresholds 0-10 cm (the YCB-Video convention, Xiang et al. 2018)
-TRACKER_FIELDS = ("cues", "region", "working_shape", "pose_prior", "recovery", "max_frames", "x64")
+TRACKER_FIELDS = ("cues", "region", "working_shape", "pose_prior", "late_rounds", "recovery", "max_frames", "x64")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -31,7 +31,7 @@ class BenchSettings:
         protocol: rbot (success at 5 cm / 5° over frame steps, with and without resets) or bop (no resets).
         frame_steps: the steps S: every S-th frame of each sequence (RBOT's frame-rate protocol).
         resets: for each job, whether a frame beyond 5 cm / 5° restarts tracking from the ground truth.
-        cues, region, working_shape, pose_prior, recovery, max_frames: as `jaxtrack.track.track_sequence`
+        cues, region, working_shape, pose_prior, late_rounds, recovery, max_frames: as `jaxtrack.track.track_sequence`
             (working_shape "default": the tracker's; a list [h, w]; None: native crops).
         x64: the workers compute in float64 (set from the driver's JAX config by `run_bench`).
     """
@@ -43,6 +43,7 @@ class BenchSettings:
     region: str | None = None
     working_shape: object = "default"
     pose_prior: tuple | None = None
+    late_rounds: tuple | None = None  # (K, f[, τ]); None: every round (the method)
     recovery: bool | None = None  # None: on for the runs without resets (`track_sequence`)
     max_frames: int | None = None
     x64: bool = False
@@ -59,6 +60,13 @@ class BenchSettings:
             raise ValueError("--protocol bop tracks without resets (use --protocol rbot for them)")
         if self.max_frames is not None and int(self.max_frames) < 2:
             raise ValueError(f"--max-frames must be ≥ 2, got {self.max_frames}")
+        if self.late_rounds is not None:
+            from ..track._tracker import checked_late_rounds
+
+            try:
+                checked_late_rounds(self.late_rounds)
+            except ValueError as e:
+                raise ValueError(f"--late-rounds: {e}") from None
 
     def tracker_dict(self) -> dict:
         """The fields that change what a job computes (compared when a bench is resumed)."""
@@ -166,6 +174,7 @@ def run_job(job: BenchJob, settings: BenchSettings, out: str | os.PathLike, use_
                        working_shape=settings.working_shape if settings.working_shape in ("default", None)
                        else tuple(settings.working_shape),
                        pose_prior=None if settings.pose_prior is None else tuple(settings.pose_prior),
+                       late_rounds=None if settings.late_rounds is None else tuple(settings.late_rounds),
                        recovery=settings.recovery, reset_on_failure=job.reset, max_frames=settings.max_frames,
                        progress=False, results=csv)
         ev = evaluate_tracking(csv, seq, obj_id=job.item.obj_id)

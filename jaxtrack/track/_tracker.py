@@ -258,6 +258,20 @@ DEFAULT_POSE_PRIOR = (0.0, 0.0, 0.0, 0.0, 0.0)
 RENDER_REUSE_PX = 0.0
 
 
+def checked_late_rounds(late_rounds) -> tuple[float, float, float]:
+    """(K, f, τ) from `late_rounds` = (K, f[, τ]) (τ 0 when not given), or a ValueError that names what is wrong:
+    K ≥ 0 refinement rounds (inf: every round), the factor f and the confidence τ in [0, 1]."""
+    try:
+        late = tuple(float(v) for v in late_rounds)
+    except (TypeError, ValueError):
+        late = ()
+    late = late + ((0.0,) if len(late) == 2 else ())
+    if len(late) != 3 or np.isnan(late[0]) or late[0] < 0 or not all(np.isfinite(v) and 0 <= v <= 1 for v in late[1:]):
+        raise ValueError(f"late_rounds must be (K, f[, τ]): K ≥ 0 rounds (inf: every round), the factor f and the "
+                         f"confidence τ in [0, 1], got {late_rounds!r}")
+    return late
+
+
 def default_params(
     model: KinematicModel, crop_shape: tuple[int, int] = (256, 256), dtype=jnp.float32, weights: CueWeights | None = None,
     occlusion: OcclusionParams | None = None, joint_limits: tuple | None = None, pose_prior: tuple | None = None,
@@ -302,10 +316,7 @@ def default_params(
     J = model.num_joints
     late = (MOTION_ROUNDS if J == 0 else np.inf, MOTION_LATE_FACTOR, MOTION_LATE_ABOVE)
     if late_rounds is not None:
-        late = tuple(float(v) for v in late_rounds) + ((0.0,) if len(late_rounds) == 2 else ())
-        if (len(late) != 3 or np.isnan(late[0]) or late[0] < 0 or not all(np.isfinite(v) and 0 <= v <= 1 for v in late[1:])):
-            raise ValueError(f"late_rounds must be (K, f[, τ]): K ≥ 0 rounds (inf: every round), the factor f and the "
-                             f"confidence τ in [0, 1], got {late_rounds}")
+        late = checked_late_rounds(late_rounds)
     flow = rigid_params() if model.num_joints == 0 else articulated_params()
     def device(a):
         return to_device(a, dtype)
