@@ -303,13 +303,16 @@ def _prior_pair(text: str) -> tuple[float, ...]:
 
 def _late_rounds(text: str) -> tuple[float, ...]:
     """An argparse type: 'K,F[,T]': K ≥ 0 refinement rounds (inf: every one), the factor F and the confidence T in [0, 1]."""
+    from jaxtrack.track._tracker import checked_late_rounds  # the rule `default_params` applies
+
     try:
         values = tuple(float(v) for v in text.split(",") if v.strip())
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected K,F[,T] (numbers), got {text!r}") from None
-    if (len(values) not in (2, 3) or np.isnan(values[0]) or values[0] < 0
-            or not all(np.isfinite(v) and 0 <= v <= 1 for v in values[1:])):
-        raise argparse.ArgumentTypeError(f"expected K,F[,T]: K ≥ 0 (inf: every round), F and T in [0, 1], got {text!r}")
+    try:
+        checked_late_rounds(values)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected K,F[,T]: K ≥ 0 (inf: every round), F and T in [0, 1], got {text!r}") from None
     return values
 
 
