@@ -177,6 +177,16 @@ def test_sample_lines_and_distribution_match_numpy_reference_on_a_disc():
             observed = centers[i] + (float(smp.delta_r[i]) + float(mean[i]) * scale * float(smp.step[i])) * normals[i]
             assert abs(np.linalg.norm(observed - centre) - radius) < 0.6 * scale + 0.5
         assert checked >= 12
+        # The recovery reads the same segments off the per-pixel log-odds image (one gather a pixel): the same sums.
+        lo_img = L.log_odds_image(hist, jnp.asarray(image), params.posterior_prior)
+        assert lo_img.shape == (h, w)
+        on_lines = L.sample_lines(lo_img[..., None], jnp.asarray(centers, F32), jnp.asarray(normals, F32), scale, config)
+        np.testing.assert_array_equal(np.asarray(on_lines.pixel), np.asarray(smp.pixel))
+        per_pixel = np.where(np.asarray(on_lines.mask), np.asarray(on_lines.colour)[..., 0], 0.0)[:, :length]
+        sums = per_pixel.reshape(16, 19, scale).sum(-1)
+        lo = np.asarray(jax.jit(lambda s: L.segment_log_odds(hist, s, scale, config, params.posterior_prior))(smp))
+        np.testing.assert_allclose(sums, lo, rtol=1e-5, atol=1e-4)
+        assert np.abs(lo).max() > 1.0  # the disc's colours are told apart: not a comparison of zeros
 
 
 def test_distribution_mean_finds_a_step_edge_within_a_tenth_of_a_pixel():

@@ -17,6 +17,7 @@ from ._histograms import colour_index as colour_index
 from ._histograms import histogram_from_colours as histogram_from_colours
 from ._histograms import image_colours as image_colours
 from ._histograms import learn_histograms as learn_histograms
+from ._histograms import log_odds_image as log_odds_image
 from ._histograms import log_odds_of_cells as log_odds_of_cells
 from ._histograms import log_odds_table as log_odds_table
 from ._histograms import pixel_posteriors as pixel_posteriors

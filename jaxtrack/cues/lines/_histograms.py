@@ -164,6 +164,15 @@ def log_odds_of_cells(hist: ColourHistograms | LogOddsTable, cells, prior=1e-7):
     return jnp.log(hist.fg[cells] + eps) - jnp.log(hist.bg[cells] + eps)
 
 
+def log_odds_image(hist: ColourHistograms | LogOddsTable, image, prior=1e-7):
+    """(H, W) log(h_f + ε) − log(h_b + ε) of every pixel of an (H, W, 3) image (0-255, any dtype), in the
+    histograms' dtype: the per-pixel values `segment_log_odds` sums, computed once per image where many poses read
+    the same frame (the recovery's hypotheses), so that a line's pixel is one scalar gather. `hist` may be a
+    `LogOddsTable` (then `prior` is the table's own)."""
+    table = hist if isinstance(hist, LogOddsTable) else log_odds_table(hist, prior)
+    return table.values[colour_index(jnp.asarray(image).astype(table.values.dtype), table.bins)]
+
+
 def posterior_image(hist: ColourHistograms, image, prior=1e-7):
     """(H, W) foreground posterior of every pixel of an (H, W, 3) image (for display and checks)."""
     return pixel_posteriors(hist, image, prior)
