@@ -209,7 +209,8 @@ def hypothesis_poses(references, offsets, center):
 def refine_on_lines(cameras: Camera, T_world_root, view_model, frames, histograms, params: LineParams, scales,
                     standard_deviations, num_rounds: int, config: LineConfig = DEFAULT_LINE_CONFIG):
     """`num_rounds` rounds of {every camera's line rows → one solve} from a pose (the lines' own schedule, M3T's
-    two Gauss-Newton steps per round). Returns (T (4, 4), status). Jittable, vmappable over poses."""
+    two Gauss-Newton steps per round); `histograms`: the cameras' `ColourHistograms` or their `LogOddsTable`s (leading
+    C axis). Returns (T (4, 4), status). Jittable, vmappable over poses."""
     kin = rigid_model(cameras.K.dtype)
     C = cameras.K.shape[0]
 
@@ -235,7 +236,9 @@ def recover_pose(cameras: Camera, frames, view_model: SparseViewModel, histogram
 
     Every hypothesis (`hypothesis_poses`) is scored at `config.score_scale` in one vmapped call; reference 0 and the
     `config.refine − 1` best others are refined (`refine_on_lines`, vmapped; `scales`, `standard_deviations`,
-    `num_rounds`: the line modality's schedule) and compared at `config.final_scale`. Jittable.
+    `num_rounds`: the line modality's schedule) and compared at `config.final_scale`. The colour histograms are
+    turned into log odds once per call, per cell (`log_odds_table`, which the refinement reads) and per pixel of
+    each frame (`rig_log_odds`, which every hypothesis' score reads). Jittable.
     """
     config = RecoveryConfig() if config is None else config
     dtype = cameras.K.dtype
