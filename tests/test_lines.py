@@ -220,6 +220,28 @@ def test_distribution_mean_finds_a_step_edge_within_a_tenth_of_a_pixel():
             assert np.max(np.abs(coordinate - edge)) < 0.1, (vertical, angle, scale, coordinate - edge)
 
 
+@pytest.mark.parametrize("bins", [8, 16, 30, 32, 64])
+def test_colour_index_of_8_bit_colours_equals_the_float_bins(bins):
+    """8-bit colours are binned in integer arithmetic (no cast): the same cell as floor(c · B / 256) in float, for
+    every channel value, and the lines read the same log odds from a uint8 frame as from its float copy."""
+    c = np.arange(256)
+    colours = np.stack([c, c[::-1], (c * 7) % 256], -1)
+    by_int = np.asarray(L.colour_index(jnp.asarray(colours, jnp.uint8), bins))
+    expected = ((np.floor(colours * bins / 256.0).astype(int)[:, 0] * bins + np.floor(colours * bins / 256.0).astype(int)[:, 1])
+                * bins + np.floor(colours * bins / 256.0).astype(int)[:, 2])
+    np.testing.assert_array_equal(by_int, expected)
+    np.testing.assert_array_equal(by_int, np.asarray(L.colour_index(jnp.asarray(colours, F32), bins)))
+    rng = np.random.default_rng(bins)
+    image = rng.integers(0, 256, (120, 160, 3), dtype=np.uint8)
+    table = L.LogOddsTable(jnp.asarray(rng.normal(size=bins**3), F32), jnp.asarray(1e-7, F32))
+    centre = jnp.asarray(rng.uniform(40, 100, (16, 2)), F32)
+    angle = rng.uniform(0, 2 * np.pi, 16)
+    normal = jnp.asarray(np.stack([np.cos(angle), np.sin(angle)], -1), F32)
+    odds = [np.asarray(L.segment_log_odds(table, L.sample_lines(jnp.asarray(im), centre, normal, 3), 3, L.LineConfig()))
+            for im in (image, image.astype(np.float32))]
+    np.testing.assert_array_equal(odds[0], odds[1])
+
+
 def test_histograms_learn_update_and_posteriors():
     image = jnp.asarray(np.concatenate([np.broadcast_to(FG, (4, 8, 3)), np.broadcast_to(BG, (4, 8, 3))]), F32)
     fg_px = jnp.array([[1.0, 1.0], [2.0, 2.0], [3.0, 3.0]])

@@ -166,7 +166,7 @@ class LineSamples(eqx.Module):
 
     Attributes:
         pixel: (N, M, 2) int32 (x, y) pixels read.
-        colour: (N, M, 3) their colours.
+        colour: (N, M, 3) their colours, in the image's dtype (uint8 for 8-bit frames).
         mask: (N, M) bool, pixel k < num_segments · scale.
         delta_r: (N,) position (px along the normal, relative to the centre) of the line's middle.
         step: (N,) px along the normal per pixel of the line (1/|n_dom|).
@@ -283,7 +283,7 @@ def sample_lines(image, center, normal, scale, config: LineConfig = DEFAULT_LINE
     inside = in_img[:, 0] & jnp.take_along_axis(in_img, jnp.broadcast_to(last, (x.shape[0], 1)), axis=1)[:, 0]
     xi = jnp.clip(x, 0, w - 1).astype(jnp.int32)
     yi = jnp.clip(y, 0, h - 1).astype(jnp.int32)
-    colour = image[yi, xi].astype(dtype)  # gathered, then cast (8-bit frames stay 8-bit)
+    colour = image[yi, xi]  # in the image's dtype: 8-bit frames stay 8-bit (`colour_index` bins them as integers)
     delta_r = (u0 + sign * (L - 1) / 2 - c_dom) / n_dom
     return LineSamples(
         pixel=jnp.stack([xi, yi], -1), colour=colour, mask=mask & in_img, delta_r=delta_r,
