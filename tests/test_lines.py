@@ -227,8 +227,8 @@ def test_colour_index_of_8_bit_colours_equals_the_float_bins(bins):
     c = np.arange(256)
     colours = np.stack([c, c[::-1], (c * 7) % 256], -1)
     by_int = np.asarray(L.colour_index(jnp.asarray(colours, jnp.uint8), bins))
-    expected = ((np.floor(colours * bins / 256.0).astype(int)[:, 0] * bins + np.floor(colours * bins / 256.0).astype(int)[:, 1])
-                * bins + np.floor(colours * bins / 256.0).astype(int)[:, 2])
+    b = np.floor(colours * bins / 256.0).astype(int)
+    expected = (b[:, 0] * bins + b[:, 1]) * bins + b[:, 2]
     np.testing.assert_array_equal(by_int, expected)
     np.testing.assert_array_equal(by_int, np.asarray(L.colour_index(jnp.asarray(colours, F32), bins)))
     rng = np.random.default_rng(bins)
